@@ -1,0 +1,214 @@
+"""Rotations and the rolling-shutter camera model, vectorized over leading axes.
+
+Pure numpy. Conventions (``CONTRACTS.md``): camera optical frame (x right, y down, z forward);
+a frame's instantaneous RS motion ``(w, v)`` is expressed in its row-0 camera frame and the
+camera at image row ``r`` satisfies ``X_row0 = Exp(r*tau*w) @ X_row_r + r*tau*v``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SMALL_ANGLE = 1e-8  # rad; below this the series expansions are used
+
+
+def hat(phi: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrices ``[phi]x`` of (..., 3) vectors, shape (..., 3, 3)."""
+    phi = np.asarray(phi, dtype=float)
+    out = np.zeros(phi.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -phi[..., 2]
+    out[..., 0, 2] = phi[..., 1]
+    out[..., 1, 0] = phi[..., 2]
+    out[..., 1, 2] = -phi[..., 0]
+    out[..., 2, 0] = -phi[..., 1]
+    out[..., 2, 1] = phi[..., 0]
+    return out
+
+
+def _sinc_terms(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``sin(t)/t``, ``(1-cos t)/t^2`` and ``(t - sin t)/t^3`` with safe small-angle limits."""
+    small = theta < 1e-4
+    t = np.where(small, 1.0, theta)
+    t2 = t * t
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(t) / t)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t2)
+    c = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (t - np.sin(t)) / (t2 * t))
+    return a, b, c
+
+
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation matrices ``Exp(phi)`` of (..., 3) rotation vectors, (..., 3, 3)."""
+    phi = np.asarray(phi, dtype=float)
+    theta = np.linalg.norm(phi, axis=-1)
+    a, b, _ = _sinc_terms(theta)
+    K = hat(phi)
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def so3_right_jacobian(phi: np.ndarray) -> np.ndarray:
+    """Right Jacobian ``J_r(phi)``: ``Exp(phi + d) ~= Exp(phi) Exp(J_r(phi) d)``, (..., 3, 3)."""
+    phi = np.asarray(phi, dtype=float)
+    theta = np.linalg.norm(phi, axis=-1)
+    _, b, c = _sinc_terms(theta)
+    K = hat(phi)
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    return eye - b[..., None, None] * K + c[..., None, None] * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors of (..., 3, 3) rotation matrices (inverse of :func:`so3_exp`)."""
+    R = np.asarray(R, dtype=float)
+    flat = R.reshape(-1, 3, 3)
+    cos = np.clip((np.trace(flat, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos)
+    vee = np.stack(
+        [
+            flat[:, 2, 1] - flat[:, 1, 2],
+            flat[:, 0, 2] - flat[:, 2, 0],
+            flat[:, 1, 0] - flat[:, 0, 1],
+        ],
+        axis=-1,
+    )
+    sin = np.sin(theta)
+    near_pi = (sin < 1e-6) & (theta > 1.0)
+    scale = np.where(theta < 1e-8, 0.5, theta / (2.0 * np.where(sin < 1e-12, 1.0, sin)))
+    phi = scale[:, None] * vee
+    for i in np.nonzero(near_pi)[0]:  # theta ~ pi: the axis is a column of (R + I) / 2
+        B = (flat[i] + np.eye(3)) / 2.0
+        axis = B[:, np.argmax(np.diag(B))]
+        phi[i] = np.pi * axis / np.linalg.norm(axis)
+    return phi.reshape(R.shape[:-1])
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """Angle of (..., 3, 3) rotations in degrees (the paper's Rodrigues error metric)."""
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two 3-vectors in degrees (nan if either is zero)."""
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na == 0.0 or nb == 0.0:
+        return float("nan")
+    return float(np.degrees(np.arccos(np.clip(np.dot(a, b) / (na * nb), -1.0, 1.0))))
+
+
+def rs_row_pose(
+    rows: np.ndarray, line_delay: float, w: np.ndarray, v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of the camera at image rows ``rows`` relative to row 0.
+
+    Convention: ``X_row0 = R_row0_rowr @ X_row_r + t_row0_rowr`` with
+    ``R_row0_rowr = Exp(r*tau*w)``, ``t_row0_rowr = r*tau*v`` (CONTRACTS.md).
+
+    Returns ``R`` (N, 3, 3) and ``t`` (N, 3).
+    """
+    s = np.asarray(rows, dtype=float) * line_delay
+    return so3_exp(s[:, None] * w[None, :]), s[:, None] * v[None, :]
+
+
+def pose_at_row(
+    R_curr_prev: np.ndarray,
+    t_curr_prev: np.ndarray,
+    w_prev: np.ndarray,
+    v_prev: np.ndarray,
+    w_curr: np.ndarray,
+    v_curr: np.ndarray,
+    row: float,
+    line_delay: float,
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+    """Re-express a row-0 relative RS motion at another reference row.
+
+    Given ``X_curr0 = R X_prev0 + t`` and each frame's ``(w, v)`` in its row-0 frame, returns the
+    relative pose between the two frames' cameras at ``row`` (``X_curr_m = R_m X_prev_m + t_m``)
+    and the velocities expressed in those row frames: ``w`` unchanged (a rotation about its own
+    axis), ``v_m = Exp(-row*tau*w) v``.
+    """
+    s = row * line_delay
+    Rp = so3_exp(s * w_prev)
+    Rc = so3_exp(s * w_curr)
+    tp, tc = s * v_prev, s * v_curr
+    # X_prev0 = Rp X_prev_m + tp ; X_curr0 = Rc X_curr_m + tc
+    R_m = Rc.T @ R_curr_prev @ Rp
+    t_m = Rc.T @ (R_curr_prev @ tp + t_curr_prev - tc)
+    return R_m, t_m, (w_prev, Rp.T @ v_prev, w_curr, Rc.T @ v_curr)
+
+
+def pose_from_row(
+    R_m: np.ndarray,
+    t_m: np.ndarray,
+    w_prev: np.ndarray,
+    v_prev_m: np.ndarray,
+    w_curr: np.ndarray,
+    v_curr_m: np.ndarray,
+    row: float,
+    line_delay: float,
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+    """Inverse of :func:`pose_at_row`: from a reference-row relative motion back to row 0."""
+    s = row * line_delay
+    Rp = so3_exp(s * w_prev)
+    Rc = so3_exp(s * w_curr)
+    v_prev = Rp @ v_prev_m
+    v_curr = Rc @ v_curr_m
+    tp, tc = s * v_prev, s * v_curr
+    R = Rc @ R_m @ Rp.T
+    t = Rc @ t_m + tc - R @ tp
+    return R, t, (w_prev, v_prev, w_curr, v_curr)
+
+
+def project_rs(
+    X_world: np.ndarray,
+    R_world_cam: np.ndarray,
+    p_world_cam: np.ndarray,
+    K: np.ndarray,
+    line_delay: float,
+    w: np.ndarray,
+    v: np.ndarray,
+    height: int | None = None,
+    iterations: int = 30,
+    tol_px: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact rolling-shutter projection by fixed-point iteration on the row.
+
+    The camera pose at row 0 is ``(R_world_cam, p_world_cam)``; row ``r`` sees the world from
+    ``X_row0 = Exp(r*tau*w) X_row_r + r*tau*v``. Finds ``r`` with ``row(project(X, pose(r))) = r``.
+
+    Args:
+        X_world: (N, 3) points.
+        K: (3, 3) intrinsics.
+        height: optional image height; rows are clipped to [0, height-1] during the iteration
+            so points far outside the image do not diverge.
+
+    Returns:
+        ``pts`` (N, 2) pixel coordinates (nan where behind the camera or not converged) and
+        ``depth`` (N,) the depth in the row's camera frame.
+    """
+    X_cam0 = (np.asarray(X_world, float) - p_world_cam) @ R_world_cam  # R^T (X - p)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    z0 = X_cam0[:, 2]
+    rows = np.where(z0 > 1e-9, fy * X_cam0[:, 1] / np.where(z0 > 1e-9, z0, 1.0) + cy, 0.0)
+    converged = np.zeros(len(X_cam0), dtype=bool)
+    X_r = X_cam0
+    for _ in range(iterations):
+        if height is not None:
+            rows = np.clip(rows, 0.0, height - 1.0)
+        R_r, t_r = rs_row_pose(rows, line_delay, w, v)
+        # X_row_r = R_r^T (X_row0 - t_r)
+        X_r = np.einsum("nji,nj->ni", R_r, X_cam0 - t_r)
+        z = X_r[:, 2]
+        safe_z = np.where(z > 1e-9, z, 1.0)
+        new_rows = fy * X_r[:, 1] / safe_z + cy
+        converged = np.abs(new_rows - rows) < tol_px
+        rows = new_rows
+        if np.all(converged | (z <= 1e-9)):
+            break
+    z = X_r[:, 2]
+    safe_z = np.where(z > 1e-9, z, 1.0)
+    pts = np.stack([fx * X_r[:, 0] / safe_z + cx, fy * X_r[:, 1] / safe_z + cy], axis=1)
+    bad = (z <= 1e-9) | ~converged
+    if height is not None:
+        bad |= (pts[:, 1] < 0) | (pts[:, 1] > height - 1)
+    pts[bad] = np.nan
+    return pts, z

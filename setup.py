@@ -1,0 +1,34 @@
+"""Build script of rsvo_ros (ament_python: colcon-buildable and pip-installable)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE_NAME = "rsvo_ros"
+
+setup(
+    name=PACKAGE_NAME,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE_NAME}"]),
+        (f"share/{PACKAGE_NAME}", ["package.xml"]),
+        (f"share/{PACKAGE_NAME}/launch", glob("launch_scripts/*.launch.py")),
+    ],
+    install_requires=["setuptools"],
+    extras_require={"test": ["pytest", "pytest-timeout", "ruff"]},
+    zip_safe=True,
+    maintainer="rsvo_ros developers",
+    maintainer_email="rsvo@example.com",
+    description="Monocular visual odometry for rolling-shutter cameras (ROS 2 Jazzy).",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "rsvo_node = rsvo_ros.cli:node_main",
+            "rsvo_replay = rsvo_ros.cli:replay_main",
+            "rsvo_synth = rsvo_ros.cli:synth_main",
+            "rsvo_bench = rsvo_ros.bench:main",
+            "rsvo_play = rsvo_ros.cli:play_main",
+        ],
+    },
+)
