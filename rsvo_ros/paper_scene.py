@@ -64,8 +64,9 @@ def loop_trajectory(rng: np.random.Generator, num_frames: int = NUM_FRAMES,
     # smooth noise: a few low-frequency sinusoids with random phases
     k = np.arange(num_frames)[:, None]
     phases = rng.uniform(0, 2 * np.pi, (2, 3))
-    ang = np.radians(2.0) * (np.sin(2 * np.pi * k * 3 / num_frames + phases[0])
-                             + 0.5 * np.sin(2 * np.pi * k * 11 / num_frames + phases[1]))  # fmt: skip
+    slow = np.sin(2 * np.pi * k * 3 / num_frames + phases[0])
+    fast = np.sin(2 * np.pi * k * 11 / num_frames + phases[1])
+    ang = np.radians(2.0) * (slow + 0.5 * fast)
     R = R @ so3_exp(ang)
     p = p + 0.03 * rng.standard_normal(p.shape)
     p[0] = LOOP_START

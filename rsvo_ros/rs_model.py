@@ -1,10 +1,11 @@
 """The rolling-shutter essential matrix of Lee & Yoon (Sec. 5) and its Sampson error (Sec. 6).
 
-Pure numpy. Convention: ``X_curr = R X_prev + t`` between the two frames' cameras at a reference
-row, ``x_curr^T E_i x_prev = 0`` per correspondence ``i``. Inside the solver, row times are
-measured from a reference row ``row_ref`` (the principal point's row, near the image centre):
-``s = (r - row_ref) * tau``; :func:`rsvo_ros.geometry.pose_from_row` converts the result back to
-the row-0 convention of CONTRACTS.md.
+Pure numpy, vectorized over a batch of hypotheses (leading axis ``B``) so that many LM runs
+advance together. Convention: ``X_curr = R X_prev + t`` between the two frames' cameras at a
+reference row, ``x_curr^T E_i x_prev = 0`` per correspondence ``i``. Inside the solver, row
+times are measured from a reference row ``row_ref`` (the principal point's row, near the image
+centre): ``s = (r - row_ref) * tau``; :func:`rsvo_ros.geometry.pose_from_row` converts results
+back to the row-0 convention of CONTRACTS.md.
 
 Per correspondence, with ``Rp = Exp(s_p w_p)``, ``Rc = Exp(s_c w_c)`` (exact exponential, not
 the paper's first-order ``I + s[w]x``):
@@ -12,9 +13,9 @@ the paper's first-order ``I + s[w]x``):
     E_i = Rc^T [t + R (s_p v_p) - s_c v_c]x R Rp          (paper Sec. 5, transposed convention)
 
 The Sampson error is that of the paper's Sec. 6, ``e_i = x_c^T E_i x_p / sqrt((E_i x_p)_1^2 +
-(E_i x_p)_2^2 + (E_i^T x_c)_1^2 + (E_i^T x_c)_2^2)``, in normalized coordinates; multiply by the
-focal length for pixels. Like the paper it treats ``E_i`` as constant when differentiating with
-respect to the image coordinates (the row dependence is O(tau)).
+(E_i x_p)_2^2 + (E_i^T x_c)_1^2 + (E_i^T x_c)_2^2)``, in normalized coordinates, multiplied by
+the focal length (pixels). Like the paper it treats ``E_i`` as constant when differentiating
+with respect to the image coordinates (the row dependence is O(tau)).
 """
 
 from __future__ import annotations
@@ -23,57 +24,99 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rsvo_ros.geometry import so3_exp, so3_right_jacobian
-
 NUM_PARAMS = 17  # 3 rotation + 2 translation direction + 4 x 3 velocities (paper: 17 DOF)
 
 
-@dataclass
-class RSState:
-    """A point of the 17-DOF RS relative-motion manifold at the solver's reference row.
+def _exp_and_jacobian(phi: np.ndarray, jacobian: bool):
+    """``Exp(phi)`` and optionally the right Jacobian ``J_r(phi)`` of (..., 3) vectors.
 
-    ``t`` has unit norm; ``v_*`` are in units of ``t`` per second.
+    Uses ``[phi]x^2 = phi phi^T - theta^2 I``: ``Exp = (1 - b th^2) I + a [phi]x + b phi phi^T``,
+    ``J_r = (1 - c th^2) I - b [phi]x + c phi phi^T``.
+    """
+    th2 = np.einsum("...i,...i->...", phi, phi)
+    th = np.sqrt(th2)
+    small = th < 1e-4
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(ts) / ts)
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ts)) / (ts * ts))
+    c = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ts - np.sin(ts)) / (ts * ts * ts))
+    x, y, z = phi[..., 0], phi[..., 1], phi[..., 2]
+    outer = phi[..., :, None] * phi[..., None, :]
+
+    def compose(diag, skew, sym):
+        M = sym[..., None, None] * outer
+        M[..., 0, 0] += diag
+        M[..., 1, 1] += diag
+        M[..., 2, 2] += diag
+        M[..., 0, 1] -= skew * z
+        M[..., 1, 0] += skew * z
+        M[..., 0, 2] += skew * y
+        M[..., 2, 0] -= skew * y
+        M[..., 1, 2] -= skew * x
+        M[..., 2, 1] += skew * x
+        return M
+
+    R = compose(1.0 - b * th2, a, b)
+    if not jacobian:
+        return R, None
+    return R, compose(1.0 - c * th2, -b, c)
+
+
+@dataclass
+class RSBatch:
+    """B points of the 17-DOF RS relative-motion manifold at the solver's reference row.
+
+    ``R`` (B, 3, 3); ``t`` (B, 3) unit norm; ``vel`` (B, 12) = ``[w_p, v_p, w_c, v_c]``
+    (rad/s and units of ``t`` per second).
     """
 
     R: np.ndarray
     t: np.ndarray
-    w_prev: np.ndarray
-    v_prev: np.ndarray
-    w_curr: np.ndarray
-    v_curr: np.ndarray
+    vel: np.ndarray
 
-    def copy(self) -> RSState:
-        return RSState(*(np.array(a, dtype=float) for a in self.as_tuple()))
+    @staticmethod
+    def from_pose(R: np.ndarray, t: np.ndarray, vel: np.ndarray | None = None) -> RSBatch:
+        R = np.asarray(R, float).reshape(-1, 3, 3)
+        t = np.asarray(t, float).reshape(-1, 3)
+        t = t / np.linalg.norm(t, axis=1, keepdims=True)
+        v = np.zeros((len(R), 12)) if vel is None else np.asarray(vel, float).reshape(-1, 12)
+        return RSBatch(R.copy(), t.copy(), v.copy())
 
-    def as_tuple(self) -> tuple[np.ndarray, ...]:
-        return (self.R, self.t, self.w_prev, self.v_prev, self.w_curr, self.v_curr)
+    def __len__(self) -> int:
+        return len(self.R)
 
-    def retract(self, delta: np.ndarray) -> RSState:
-        """Apply a 17-vector increment ``[dtheta(3), dt(2), dw_p, dv_p, dw_c, dv_c]``.
+    def take(self, idx) -> RSBatch:
+        idx = np.atleast_1d(idx)
+        return RSBatch(self.R[idx].copy(), self.t[idx].copy(), self.vel[idx].copy())
 
-        Rotation: ``R <- R Exp(dtheta)``; translation: ``t <- normalize(t + B dt)`` with ``B``
-        from :func:`tangent_basis`; velocities additive.
-        """
-        B = tangent_basis(self.t)
-        t_new = self.t + B @ delta[3:5]
-        return RSState(
-            self.R @ so3_exp(delta[0:3]),
-            t_new / np.linalg.norm(t_new),
-            self.w_prev + delta[5:8],
-            self.v_prev + delta[8:11],
-            self.w_curr + delta[11:14],
-            self.v_curr + delta[14:17],
+    def where(self, mask: np.ndarray, other: RSBatch) -> RSBatch:
+        """Entries of ``other`` where ``mask`` (B,) is True, else ours."""
+        return RSBatch(
+            np.where(mask[:, None, None], other.R, self.R),
+            np.where(mask[:, None], other.t, self.t),
+            np.where(mask[:, None], other.vel, self.vel),
         )
+
+    def retract(self, delta: np.ndarray) -> RSBatch:
+        """Apply (B, 17) increments ``[dtheta(3), dt(2), dvel(12)]``.
+
+        ``R <- R Exp(dtheta)``; ``t <- normalize(t + B dt)`` with ``B`` from
+        :func:`tangent_basis`; velocities additive.
+        """
+        dR, _ = _exp_and_jacobian(delta[:, 0:3], jacobian=False)
+        t_new = self.t + np.einsum("bij,bj->bi", tangent_basis(self.t), delta[:, 3:5])
+        t_new /= np.linalg.norm(t_new, axis=1, keepdims=True)
+        return RSBatch(self.R @ dR, t_new, self.vel + delta[:, 5:17])
 
 
 def tangent_basis(t: np.ndarray) -> np.ndarray:
-    """Two orthonormal (3,) columns spanning the tangent plane of the unit sphere at ``t``."""
-    t = t / np.linalg.norm(t)
-    helper = np.eye(3)[np.argmin(np.abs(t))]
+    """(B, 3, 2) orthonormal bases of the unit sphere's tangent planes at (B, 3) ``t``."""
+    t = t / np.linalg.norm(t, axis=-1, keepdims=True)
+    helper = np.eye(3)[np.argmin(np.abs(t), axis=-1)]
     b1 = np.cross(t, helper)
-    b1 /= np.linalg.norm(b1)
+    b1 /= np.linalg.norm(b1, axis=-1, keepdims=True)
     b2 = np.cross(t, b1)
-    return np.stack([b1, b2], axis=1)
+    return np.stack([b1, b2], axis=-1)
 
 
 @dataclass
@@ -98,6 +141,11 @@ class Correspondences:
     def __len__(self) -> int:
         return len(self.x_prev)
 
+    @property
+    def s_max(self) -> float:
+        """Largest |row time| of the points from the reference row (s), at least 1e-12."""
+        return max(float(np.max(np.abs(np.concatenate([self.s_prev, self.s_curr])))), 1e-12)
+
 
 def make_correspondences(
     pts_prev: np.ndarray, pts_curr: np.ndarray, K: np.ndarray, line_delay: float, row_ref: float
@@ -117,78 +165,109 @@ def make_correspondences(
     )
 
 
-def sampson_residuals(
-    state: RSState, corr: Correspondences, jacobian: bool = False
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """Signed Sampson errors (N,) in pixels and, optionally, their Jacobian (N, 17).
+def _broadcast(corr: Correspondences, B: int, idx: np.ndarray | None):
+    """Per-hypothesis views (B, n, ...) of the correspondences (all, or the (B, n) ``idx``)."""
+    if idx is None:
+        return (corr.x_prev[None], corr.x_curr[None], corr.s_prev[None], corr.s_curr[None])
+    return corr.x_prev[idx], corr.x_curr[idx], corr.s_prev[idx], corr.s_curr[idx]
 
-    The Jacobian is analytic, with respect to the increment of :meth:`RSState.retract`.
+
+def sampson_residuals(
+    state: RSBatch, corr: Correspondences, jacobian: bool = False,
+    idx: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:  # fmt: skip
+    """Signed Sampson errors (B, n) in pixels and, optionally, their Jacobian (B, n, 17).
+
+    Each hypothesis ``b`` is evaluated on all correspondences, or on ``corr``'s rows
+    ``idx[b]`` when the (B, n) index array is given. The Jacobian is analytic, with respect to
+    the increment of :meth:`RSBatch.retract`.
     """
-    R, t = state.R, state.t
-    s_p, s_c = corr.s_prev, corr.s_curr
-    phi_p = s_p[:, None] * state.w_prev[None, :]
-    phi_c = s_c[:, None] * state.w_curr[None, :]
-    Rp = so3_exp(phi_p)
-    Rc = so3_exp(phi_c)
-    q = np.einsum("nij,nj->ni", Rp, corr.x_prev)  # Rp x_p
-    a = q @ R.T  # R Rp x_p
-    b = np.einsum("nij,nj->ni", Rc, corr.x_curr)  # Rc x_c
-    tp = s_p[:, None] * state.v_prev[None, :]
-    T = t[None, :] + tp @ R.T - s_c[:, None] * state.v_curr[None, :]
+    x_p, x_c, s_p, s_c = _broadcast(corr, len(state), idx)
+    R, t, vel = state.R, state.t, state.vel
+    w_p, v_p, w_c, v_c = vel[:, 0:3], vel[:, 3:6], vel[:, 6:9], vel[:, 9:12]
+    phi_p = s_p[..., None] * w_p[:, None, :]
+    phi_c = s_c[..., None] * w_c[:, None, :]
+    Rp, Jr_p = _exp_and_jacobian(phi_p, jacobian)
+    Rc, Jr_c = _exp_and_jacobian(phi_c, jacobian)
+    q = np.einsum("bnij,bnj->bni", Rp, x_p)  # Rp x_p
+    a = np.einsum("bij,bnj->bni", R, q)  # R Rp x_p
+    b = np.einsum("bnij,bnj->bni", Rc, x_c)  # Rc x_c
+    tp = s_p[..., None] * v_p[:, None, :]
+    T = t[:, None, :] + np.einsum("bij,bnj->bni", R, tp) - s_c[..., None] * v_c[:, None, :]
     g = np.cross(T, a)  # [T]x a
     h = np.cross(b, T)  # -[T]x b
-    n = np.einsum("ni,ni->n", b, g)  # x_c^T E x_p
-    Ex = np.einsum("nji,nj->ni", Rc, g)  # Rc^T g = E x_p
-    Rth = h @ R  # R^T h
-    ETx = np.einsum("nji,nj->ni", Rp, Rth)  # Rp^T R^T h = E^T x_c
-    d2 = Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + ETx[:, 0] ** 2 + ETx[:, 1] ** 2
-    d2 = np.maximum(d2, 1e-300)
-    inv_d = 1.0 / np.sqrt(d2)
+    n = np.einsum("bni,bni->bn", b, g)  # x_c^T E x_p
+    Ex = np.einsum("bnji,bnj->bni", Rc, g)  # Rc^T g = E x_p
+    Rth = np.einsum("bji,bnj->bni", R, h)  # R^T h
+    ETx = np.einsum("bnji,bnj->bni", Rp, Rth)  # Rp^T R^T h = E^T x_c
+    d2 = Ex[..., 0] ** 2 + Ex[..., 1] ** 2 + ETx[..., 0] ** 2 + ETx[..., 1] ** 2
+    inv_d = 1.0 / np.sqrt(np.maximum(d2, 1e-300))
     e = corr.focal * n * inv_d
     if not jacobian:
         return e, None
 
-    # The Sampson error is e = f n / sqrt(d2), with n = b.(T x a), d2 = |P Ex|^2 + |P ETx|^2
-    # (P keeps the first two components). Every parameter moves a, b, T, and rotates Ex / ETx
-    # (through Rc^T, Rp^T, R^T); collect the gradient of e with respect to those as vectors.
+    # e = f n / sqrt(d2), n = b.(T x a), d2 = |P Ex|^2 + |P ETx|^2 (P: first two components).
+    # Every parameter moves a, b, T and rotates Ex / ETx (through Rc^T, Rp^T, R^T): collect the
+    # gradient of e with respect to those as vectors, then chain to each parameter block.
     u = Ex.copy()
-    u[:, 2] = 0.0
+    u[..., 2] = 0.0
     z = ETx.copy()
-    z[:, 2] = 0.0
-    U = np.einsum("nij,nj->ni", Rc, u)  # dEx = Rc^T dg (+ rotation of Rc^T)
-    A = R @ Rp
-    Z = np.einsum("nij,nj->ni", A, z)  # dETx = (R Rp)^T dh (+ rotations)
-    k = (corr.focal * n * inv_d**3)[:, None]
-    f_inv_d = (corr.focal * inv_d)[:, None]
+    z[..., 2] = 0.0
+    U = np.einsum("bnij,bnj->bni", Rc, u)
+    A = np.einsum("bij,bnjk->bnik", R, Rp)  # R Rp; E^T x_c = A^T h
+    Z = np.einsum("bnij,bnj->bni", A, z)
+    k = (corr.focal * n * inv_d**3)[..., None]
+    f_inv_d = (corr.focal * inv_d)[..., None]
     c_a = f_inv_d * h - k * np.cross(U, T)  # multiplies da
     c_b = f_inv_d * g - k * np.cross(T, Z)  # multiplies db
     c_T = f_inv_d * np.cross(a, b) - k * (np.cross(a, U) + np.cross(Z, b))  # multiplies dT
     c_Ex = -k * u  # multiplies the rotation term of Ex
     c_ETx = -k * z  # multiplies the rotation terms of ETx
+    RtcT = np.einsum("bji,bnj->bni", R, c_T)  # R^T c_T
 
-    J = np.empty((len(e), NUM_PARAMS))
+    J = np.empty(e.shape + (NUM_PARAMS,))
     # rotation, R <- R Exp(d): da = -R [q]x d, dT = -R [tp]x d, ETx gains Rp^T [R^T h]x d
-    J[:, 0:3] = (
-        np.cross(q, c_a @ R)
-        + np.cross(tp, c_T @ R)
-        + np.cross(np.einsum("nij,nj->ni", Rp, c_ETx), Rth)
+    J[..., 0:3] = (
+        np.cross(q, np.einsum("bji,bnj->bni", R, c_a))
+        + np.cross(tp, RtcT)
+        + np.cross(np.einsum("bnij,bnj->bni", Rp, c_ETx), Rth)
     )
     # translation direction: dT = B d
-    J[:, 3:5] = c_T @ tangent_basis(t)
+    J[..., 3:5] = np.einsum("bni,bik->bnk", c_T, tangent_basis(t))
     # w_prev: dRp = Rp [M_p d]x with M_p = s_p J_r(s_p w_p)
-    M_p = s_p[:, None, None] * so3_right_jacobian(phi_p)
-    y_p = np.einsum("nji,nj->ni", A, c_a)  # (R Rp)^T c_a
-    J[:, 5:8] = np.einsum(
-        "nji,nj->ni", M_p, np.cross(corr.x_prev, y_p) + np.cross(c_ETx, ETx)
+    y_p = np.einsum("bnji,bnj->bni", A, c_a)
+    J[..., 5:8] = s_p[..., None] * np.einsum(
+        "bnji,bnj->bni", Jr_p, np.cross(x_p, y_p) + np.cross(c_ETx, ETx)
     )
     # v_prev: dT = s_p R d
-    J[:, 8:11] = s_p[:, None] * (c_T @ R)
+    J[..., 8:11] = s_p[..., None] * RtcT
     # w_curr: dRc = Rc [M_c d]x
-    M_c = s_c[:, None, None] * so3_right_jacobian(phi_c)
-    y_c = np.einsum("nji,nj->ni", Rc, c_b)
-    J[:, 11:14] = np.einsum(
-        "nji,nj->ni", M_c, np.cross(corr.x_curr, y_c) + np.cross(c_Ex, Ex)
+    y_c = np.einsum("bnji,bnj->bni", Rc, c_b)
+    J[..., 11:14] = s_c[..., None] * np.einsum(
+        "bnji,bnj->bni", Jr_c, np.cross(x_c, y_c) + np.cross(c_Ex, Ex)
     )
     # v_curr: dT = -s_c d
-    J[:, 14:17] = -s_c[:, None] * c_T
+    J[..., 14:17] = -s_c[..., None] * c_T
     return e, J
+
+
+def rs_depths(state: RSBatch, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
+    """Depths (along the bearings) of every correspondence in both frames, (B, N) each.
+
+    Least squares of ``lam_c Rc x_c = lam_p R Rp x_p + T`` per point (the rows' own cameras).
+    """
+    x_p, x_c, s_p, s_c = _broadcast(corr, len(state), None)
+    vel = state.vel
+    Rp, _ = _exp_and_jacobian(s_p[..., None] * vel[:, None, 0:3], False)
+    Rc, _ = _exp_and_jacobian(s_c[..., None] * vel[:, None, 6:9], False)
+    a = np.einsum("bij,bnj->bni", state.R, np.einsum("bnij,bnj->bni", Rp, x_p))
+    b = np.einsum("bnij,bnj->bni", Rc, x_c)
+    tp = s_p[..., None] * vel[:, None, 3:6]
+    T = state.t[:, None, :] + np.einsum("bij,bnj->bni", state.R, tp)
+    T = T - s_c[..., None] * vel[:, None, 9:12]
+    # minimise |lam_p a - lam_c b + T|^2 over (lam_p, lam_c)
+    aa, bb, ab = (a * a).sum(-1), (b * b).sum(-1), (a * b).sum(-1)
+    aT, bT = (a * T).sum(-1), (b * T).sum(-1)
+    det = aa * bb - ab * ab
+    det = np.where(np.abs(det) < 1e-15, np.nan, det)
+    return (ab * bT - bb * aT) / det, (aa * bT - ab * aT) / det

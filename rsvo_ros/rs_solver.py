@@ -1,0 +1,292 @@
+"""Search for the 17-DOF rolling-shutter relative motion: batched Levenberg-Marquardt (Sec. 6).
+
+Pure numpy. Many hypotheses advance together (:class:`rsvo_ros.rs_model.RSBatch`), which is
+what makes the paper's RANSAC of LM runs (Algorithm 1) affordable in Python.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rsvo_ros.rs_model import (
+    NUM_PARAMS,
+    Correspondences,
+    RSBatch,
+    rs_depths,
+    sampson_residuals,
+)
+
+MAX_STEP_ROTATION_RAD = 0.05  # largest rotation change of one LM step (trust region)
+MAX_STEP_TRANSLATION_RAD = 0.2  # largest change of the translation direction of one step
+VEL = slice(5, 17)  # velocities [w_p, v_p, w_c, v_c] in the 17-vector
+
+
+@dataclass
+class LMOptions:
+    """Levenberg-Marquardt and search settings of the RS model (RANSAC options are separate).
+
+    The velocity prior and bounds are in image-independent units: rotation (rad) and
+    displacement (baselines, ``|t| = 1``) over half the readout, i.e. over the largest row time
+    ``s_max`` of the points from the reference row.
+    """
+
+    max_iterations: int = 30  # final refinements
+    sample_iterations: int = 8  # per RANSAC hypothesis (paper mode: Algorithm 1's LM)
+    lambda_init: float = 1e-3
+    rel_tol: float = 1e-9  # stop when every hypothesis improves by less than this fraction
+    robust_scale_px: float = 2.0  # Cauchy loss scale of the all-points refinement
+    max_angular_velocity: float = 5.0  # rad/s (286 deg/s): bound of the search
+    max_readout_translation: float = 5.0  # baselines over half the readout: bound
+    prior_rotation_rad: float = 0.3  # prior std of the rotation over half the readout
+    prior_translation: float = 4.0  # prior std of the displacement over half the readout
+    max_rotation_change_rad: float = 0.35  # how far (20 deg) a run may rotate from its start
+    init_thresholds_px: tuple[float, ...] = (1.0, 8.0)  # extra GS starts (fast mode)
+    samples_per_start: int = 8  # fast mode: LM runs on random samples from each GS start
+    sample_size: int = 40  # fast mode: correspondences per sample
+    sample_difference_iterations: int = 6  # fast mode: first with only velocity differences
+    sample_full_iterations: int = 6  # fast mode: then all 17 DOF
+
+
+def velocity_prior(corr: Correspondences, sigma_rotation_rad: float,
+                   sigma_translation: float) -> np.ndarray:
+    """Inverse std (12,) of a zero-mean prior on ``[w_p, v_p, w_c, v_c]`` (see LMOptions)."""
+    s_max = corr.s_max
+    pw, pv = s_max / sigma_rotation_rad, s_max / sigma_translation
+    return np.repeat([pw, pv, pw, pv], 3)
+
+
+def difference_basis() -> np.ndarray:
+    """(17, 11) basis that moves the two frames' velocities only in opposite directions.
+
+    From two views the difference of the frames' velocities is well observed and their common
+    part is not; solving for the difference first keeps LM in the right basin.
+    """
+    B = np.zeros((NUM_PARAMS, 11))
+    B[:5, :5] = np.eye(5)
+    B[5:11, 5:11] = 0.5 * np.eye(6)
+    B[11:17, 5:11] = -0.5 * np.eye(6)
+    return B
+
+
+def cauchy_cost(e: np.ndarray, scale: float | None) -> np.ndarray:
+    """Sum over the last axis of the Cauchy loss ``c^2 log(1 + e^2/c^2)`` (squares if None)."""
+    if scale is None:
+        return np.sum(e**2, axis=-1)
+    return np.sum(scale**2 * np.log1p((e / scale) ** 2), axis=-1)
+
+
+def _rotation_angle(R: np.ndarray) -> np.ndarray:
+    return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
+
+
+@dataclass
+class SearchLimits:
+    """What a step may not do: the physical bounds and the distance from the start."""
+
+    w_max: float
+    v_max: float
+    anchor_R: np.ndarray | None = None  # (B, 3, 3)
+    max_rotation_change: float = np.inf
+
+    def valid(self, cand: RSBatch, delta: np.ndarray) -> np.ndarray:
+        ok = np.linalg.norm(delta[:, 0:3], axis=1) <= MAX_STEP_ROTATION_RAD
+        ok &= np.linalg.norm(delta[:, 3:5], axis=1) <= MAX_STEP_TRANSLATION_RAD
+        v = cand.vel
+        for sl, lim in ((slice(0, 3), self.w_max), (slice(3, 6), self.v_max),
+                        (slice(6, 9), self.w_max), (slice(9, 12), self.v_max)):  # fmt: skip
+            ok &= np.linalg.norm(v[:, sl], axis=1) <= lim
+        if self.anchor_R is not None and np.isfinite(self.max_rotation_change):
+            rel = np.swapaxes(self.anchor_R, -1, -2) @ cand.R
+            ok &= _rotation_angle(rel) <= self.max_rotation_change
+        return ok
+
+
+def levenberg_marquardt(
+    state: RSBatch,
+    corr: Correspondences,
+    iterations: int,
+    idx: np.ndarray | None = None,
+    lambda_init: float = 1e-3,
+    rel_tol: float = 1e-9,
+    robust_scale: float | None = None,
+    prior_inv_sigma: np.ndarray | None = None,
+    basis: np.ndarray | None = None,
+    limits: SearchLimits | None = None,
+) -> tuple[RSBatch, np.ndarray, int]:
+    """Minimise the (optionally Cauchy-robust) Sampson error of every hypothesis of a batch.
+
+    Marquardt's damping ``(H + lambda diag(H)) d = -g`` per hypothesis, ``H = J^T W J``,
+    ``g = J^T W e``, IRLS weights ``W`` of the robust loss, plus the zero-mean velocity prior
+    ``sum((p * vel)^2)``. ``basis`` (17, k) restricts the steps to a subspace; ``limits``
+    rejects steps like a cost increase. Each hypothesis ``b`` uses all correspondences or the
+    rows ``idx[b]``. Returns the states, their costs (B,) and the iterations run.
+    """
+    p2 = None if prior_inv_sigma is None else np.asarray(prior_inv_sigma, float) ** 2
+
+    def total_cost(e, st):
+        c = cauchy_cost(e, robust_scale)
+        if p2 is not None:
+            c = c + (st.vel**2) @ p2
+        return c
+
+    e, J = sampson_residuals(state, corr, jacobian=True, idx=idx)
+    cost = total_cost(e, state)
+    lam = np.full(len(state), lambda_init)
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007
+        w = np.ones_like(e) if robust_scale is None else 1.0 / (1.0 + (e / robust_scale) ** 2)
+        Jw = J * w[..., None]
+        H = np.einsum("bni,bnj->bij", Jw, J)
+        g = np.einsum("bni,bn->bi", Jw, e)
+        if p2 is not None:
+            H[:, VEL, VEL] += np.diag(p2)
+            g[:, VEL] += p2 * state.vel
+        if basis is not None:
+            H = basis.T @ H @ basis
+            g = g @ basis
+        d = np.einsum("bii->bi", H)
+        d = np.maximum(d, 1e-12 * np.maximum(d.max(axis=1, keepdims=True), 1e-300))
+        A = H + (lam[:, None] * d)[:, :, None] * np.eye(H.shape[-1])
+        try:
+            delta = np.linalg.solve(A, -g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            delta = np.stack(
+                [np.linalg.lstsq(Ab, -gb, rcond=None)[0] for Ab, gb in zip(A, g, strict=True)]
+            )
+        if basis is not None:
+            delta = delta @ basis.T
+        delta = np.where(np.isfinite(delta), delta, 0.0)
+        cand = state.retract(delta)
+        e_new, _ = sampson_residuals(cand, corr, idx=idx)
+        cost_new = total_cost(e_new, cand)
+        accept = np.isfinite(cost_new) & (cost_new < cost)
+        if limits is not None:
+            accept &= limits.valid(cand, delta)
+        rel = np.where(accept, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)
+        lam = np.where(accept, np.maximum(lam / 3.0, 1e-12), lam * 4.0)
+        if not accept.any():
+            if np.all(lam > 1e8):
+                break
+            continue
+        state = state.where(accept, cand)
+        cost = np.where(accept, cost_new, cost)
+        if np.all((accept & (rel < rel_tol)) | (lam > 1e8)):
+            break
+        e, J = sampson_residuals(state, corr, jacobian=True, idx=idx)
+    return state, cost, it
+
+
+def cheirality_fraction(state: RSBatch, corr: Correspondences, mask: np.ndarray) -> np.ndarray:
+    """Fraction (B,) of the (B, N) ``mask``'s points whose depths agree in sign in both frames
+    (either sign: ``(t, v)`` and ``-(t, v)`` fit equally, see :func:`fix_sign`)."""
+    lam_p, lam_c = rs_depths(state, corr)
+    front = np.count_nonzero(mask & (lam_p > 0) & (lam_c > 0), axis=1)
+    behind = np.count_nonzero(mask & (lam_p < 0) & (lam_c < 0), axis=1)
+    return np.maximum(front, behind) / np.maximum(mask.sum(axis=1), 1)
+
+
+def fix_sign(state: RSBatch, corr: Correspondences, mask: np.ndarray) -> RSBatch:
+    """Cheirality: ``E_i -> -E_i`` under ``(t, v_p, v_c) -> -(t, v_p, v_c)``; keep the sign
+    that puts most of the (B, N) ``mask``'s points in front of both cameras."""
+    lam_p, lam_c = rs_depths(state, corr)
+    front = np.count_nonzero(mask & (lam_p > 0) & (lam_c > 0), axis=1)
+    behind = np.count_nonzero(mask & (lam_p < 0) & (lam_c < 0), axis=1)
+    flip = behind > front
+    sign = np.where(flip, -1.0, 1.0)
+    vel = state.vel.copy()
+    vel[:, 3:6] *= sign[:, None]
+    vel[:, 9:12] *= sign[:, None]
+    return RSBatch(state.R.copy(), state.t * sign[:, None], vel)
+
+
+def _random_samples(n: int, count: int, size: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, size) distinct indices per row."""
+    return np.argsort(rng.random((count, n)), axis=1)[:, :size]
+
+
+@dataclass
+class SearchResult:
+    state: RSBatch  # B = 1
+    iterations: int
+    hypotheses: int
+
+
+def search_paper(corr: Correspondences, start: RSBatch, iterations: int, sample_size: int,
+                 threshold_px: float, lm: LMOptions, rng: np.random.Generator) -> SearchResult:
+    """Algorithm 1: from the GS pose with zero velocities, LM on ``iterations`` random samples
+    of ``sample_size`` correspondences; the hypothesis with the most inliers (Sampson distance
+    below ``threshold_px`` on all points) wins and is refined on its inliers."""
+    limits = SearchLimits(lm.max_angular_velocity, lm.max_readout_translation / corr.s_max)
+    idx = _random_samples(len(corr), iterations, sample_size, rng)
+    hyps = start.take(np.zeros(iterations, dtype=int))
+    hyps, _, it = levenberg_marquardt(hyps, corr, lm.sample_iterations, idx=idx,
+                                      lambda_init=lm.lambda_init, limits=limits)
+    e, _ = sampson_residuals(hyps, corr)
+    counts = np.count_nonzero(np.abs(e) < threshold_px, axis=1)
+    best = hyps.take(int(np.argmax(counts)))
+    inl = np.abs(e[int(np.argmax(counts))]) < threshold_px
+    total = it * iterations
+    if inl.sum() >= NUM_PARAMS + 3:
+        best, _, it2 = levenberg_marquardt(best, corr.subset(inl), lm.max_iterations,
+                                           lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
+                                           limits=limits)
+        total += it2
+    return SearchResult(best, total, iterations)
+
+
+def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm: LMOptions,
+                rng: np.random.Generator) -> SearchResult:
+    """Multi-start search (the default).
+
+    From each GS start, ``samples_per_start`` LM runs on random samples (first with only the
+    difference of the frames' velocities free, then all 17 DOF), all advanced as one batch with
+    the velocity prior and bounds and within ``max_rotation_change_rad`` of their start. The
+    hypothesis with consistent depths and the lowest robust cost on all points wins; it is
+    refined on all points (Cauchy loss), then on its inliers.
+    """
+    n_starts, k = len(starts), lm.samples_per_start
+    scale = lm.robust_scale_px
+    prior = None
+    if lm.prior_rotation_rad > 0 and lm.prior_translation > 0:
+        prior = np.sqrt(len(corr)) * velocity_prior(corr, lm.prior_rotation_rad,
+                                                    lm.prior_translation)
+    size = min(lm.sample_size, len(corr))
+    prior_s = None if prior is None else prior * np.sqrt(size / len(corr))
+    origin = np.repeat(np.arange(n_starts), k)
+    hyps = starts.take(origin)
+    idx = _random_samples(len(corr), len(hyps), size, rng)
+    limits = SearchLimits(lm.max_angular_velocity, lm.max_readout_translation / corr.s_max,
+                          starts.R[origin], lm.max_rotation_change_rad)
+    hyps, _, it1 = levenberg_marquardt(hyps, corr, lm.sample_difference_iterations, idx=idx,
+                                       lambda_init=lm.lambda_init, robust_scale=scale,
+                                       prior_inv_sigma=prior_s, basis=difference_basis(),
+                                       limits=limits)
+    hyps, _, it2 = levenberg_marquardt(hyps, corr, lm.sample_full_iterations, idx=idx,
+                                       lambda_init=lm.lambda_init, robust_scale=scale,
+                                       prior_inv_sigma=prior_s, limits=limits)
+    e, _ = sampson_residuals(hyps, corr)
+    cost = cauchy_cost(e, scale)
+    if prior is not None:
+        cost = cost + (hyps.vel**2) @ prior**2
+    consistent = cheirality_fraction(hyps, corr, np.abs(e) < 3.0 * scale) >= 0.75
+    order = np.lexsort((cost, ~consistent))
+    b = int(order[0])
+    best = hyps.take(b)
+    final_limits = SearchLimits(limits.w_max, limits.v_max, starts.R[origin[b]][None],
+                                lm.max_rotation_change_rad)
+    best, _, it3 = levenberg_marquardt(best, corr, lm.max_iterations,
+                                       lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
+                                       robust_scale=scale, prior_inv_sigma=prior,
+                                       limits=final_limits)
+    e, _ = sampson_residuals(best, corr)
+    inl = np.abs(e[0]) < threshold_px
+    it4 = 0
+    if inl.sum() >= NUM_PARAMS + 3:
+        prior_i = None if prior is None else prior * np.sqrt(inl.sum() / len(corr))
+        best, _, it4 = levenberg_marquardt(best, corr.subset(inl), lm.max_iterations,
+                                           lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
+                                           prior_inv_sigma=prior_i, limits=final_limits)
+    total = (it1 + it2) * len(hyps) + it3 + it4
+    return SearchResult(best, total, len(hyps))
