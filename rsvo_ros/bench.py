@@ -1,4 +1,4 @@
-"""rsvo_bench: the paper's synthetic experiment (Sec. 7.1, Table 1), our numbers beside the paper's.
+"""rsvo_bench: the paper's synthetic experiment (Sec. 7.1, Table 1) beside the paper's numbers.
 
 Setting (paper Sec. 7.1): 1280x720 images, focal length 5 mm = 1000 px (we assume a 5 um pixel
 pitch), tau = 50 us/row, up to 500 evenly spread (bucketed) points of consecutive frames of a

@@ -25,6 +25,7 @@ MODELS = ("rs", "gs", "mvo")
 RS_MODES = ("fast", "paper")
 MIN_POINTS = {"gs": 5, "mvo": 8, "rs": 20}  # 5-point, 8-point, the paper's 20-point samples
 PAPER_RANSAC_ITERATIONS = 500  # Algorithm 1
+PARALLAX_TO_NOISE = 3.0  # parallax below this many times the GS fit's noise: no translation
 PAPER_SAMPLE_SIZE = 20  # Sec. 6: "20 feature point correspondences as the input of RANSAC"
 
 
@@ -177,9 +178,9 @@ def _normalized_eight_point(x_prev: np.ndarray, x_curr: np.ndarray) -> np.ndarra
     A = (xc[..., :, None] * xp[..., None, :]).reshape(xp.shape[:-1] + (9,))  # x_c^T E x_p
     _, _, Vt = np.linalg.svd(A)
     E = Vt[..., -1, :].reshape(xp.shape[:-2] + (3, 3))
+    E = np.swapaxes(Tc, -1, -2) @ E @ Tp  # back to normalized camera coordinates
     U, _, Vt = np.linalg.svd(E)
-    E = U @ (np.array([1.0, 1.0, 0.0])[:, None] * Vt)  # closest essential matrix
-    return np.swapaxes(Tc, -1, -2) @ E @ Tp
+    return U @ (np.array([1.0, 1.0, 0.0])[:, None] * Vt)  # closest essential matrix
 
 
 def _estimate_mvo(corr: Correspondences, threshold_px: float, confidence: float,
@@ -283,15 +284,16 @@ def estimate_relative_pose(
     if mask.sum() < min_inliers or np.linalg.norm(t) == 0:
         return failed(f"too few inliers for a GS essential matrix ({int(mask.sum())})", mask,
                       iters)
-    parallax = _median_parallax_px(R, corr, mask)
-    if parallax < min_parallax_px:
-        return failed(f"insufficient parallax ({parallax:.2f} px): pure rotation or no motion",
-                      mask, iters)
+    parallax = _rotation_only_residual_px(corr, rng)
+    e_gs = _sampson_gs_px(_essential(R, t), corr.x_prev, corr.x_curr, corr.focal)
+    noise_px = float(np.median(e_gs[mask]))
+    if parallax < max(min_parallax_px, PARALLAX_TO_NOISE * noise_px):
+        return failed(f"insufficient parallax ({parallax:.2f} px after the best rotation, "
+                      f"noise {noise_px:.2f} px): pure rotation or no motion", mask, iters)
 
     if model in ("gs", "mvo"):
-        e = _sampson_gs_px(_essential(R, t), corr.x_prev, corr.x_curr, corr.focal)
         return finish(RelativePoseResult(True, model, R, t, mask, iterations=iters,
-                                         cost=float(np.mean(e[mask] ** 2))))
+                                         cost=float(np.mean(e_gs[mask] ** 2))))
 
     start = RSBatch.from_pose(R, t)
     if mode == "paper":
@@ -348,8 +350,36 @@ def _essential(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return tx @ R
 
 
-def _median_parallax_px(R: np.ndarray, corr: Correspondences, mask: np.ndarray) -> float:
-    """Median image distance between curr points and prev points rotated by R (pixels)."""
-    rp = corr.x_prev[mask] @ R.T
-    rp = rp[:, :2] / rp[:, 2:3]
-    return float(np.median(np.linalg.norm(rp - corr.x_curr[mask, :2], axis=1)) * corr.focal)
+def _kabsch(b_prev: np.ndarray, b_curr: np.ndarray) -> np.ndarray:
+    """Rotations (…, 3, 3) best mapping unit bearings ``b_curr ~ R b_prev`` (…, n, 3)."""
+    H = np.swapaxes(b_curr, -1, -2) @ b_prev
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.zeros(H.shape)
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = d
+    return U @ D @ Vt
+
+
+def _rotation_only_residual_px(corr: Correspondences, rng: np.random.Generator,
+                               hypotheses: int = 64) -> float:
+    """Median image distance (px) left by the best rotation-only motion (2-point RANSAC +
+    refit): what a camera that only rotates cannot explain, i.e. the translation parallax."""
+    b_p = corr.x_prev / np.linalg.norm(corr.x_prev, axis=1, keepdims=True)
+    b_c = corr.x_curr / np.linalg.norm(corr.x_curr, axis=1, keepdims=True)
+    idx = np.argsort(rng.random((hypotheses, len(corr))), axis=1)[:, :2]
+    Rs = _kabsch(b_p[idx], b_c[idx])
+
+    def residuals(R):
+        rp = b_p @ np.swapaxes(R, -1, -2)
+        z = np.where(np.abs(rp[..., 2:3]) > 1e-12, rp[..., 2:3], 1e-12)
+        return np.linalg.norm(rp[..., :2] / z - corr.x_curr[:, :2], axis=-1) * corr.focal
+
+    med = np.median(residuals(Rs), axis=1)
+    R = Rs[int(np.argmin(med))]
+    for _ in range(2):
+        r = residuals(R)
+        keep = r <= np.median(r)
+        R = _kabsch(b_p[keep], b_c[keep])
+    return float(np.median(residuals(R)))

@@ -21,6 +21,7 @@ from rsvo_ros.rs_model import (
 MAX_STEP_ROTATION_RAD = 0.05  # largest rotation change of one LM step (trust region)
 MAX_STEP_TRANSLATION_RAD = 0.2  # largest change of the translation direction of one step
 VEL = slice(5, 17)  # velocities [w_p, v_p, w_c, v_c] in the 17-vector
+PRIOR_NOISE_REF_PX = 1.0  # feature noise (px) at which the velocity prior has its full weight
 
 
 @dataclass
@@ -47,6 +48,7 @@ class LMOptions:
     sample_size: int = 40  # fast mode: correspondences per sample
     sample_difference_iterations: int = 6  # fast mode: first with only velocity differences
     sample_full_iterations: int = 6  # fast mode: then all 17 DOF
+    polish_rounds: int = 2  # final refinements on the inliers with the noise-scaled prior
 
 
 def velocity_prior(corr: Correspondences, sigma_rotation_rad: float,
@@ -280,13 +282,22 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
                                        lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
                                        robust_scale=scale, prior_inv_sigma=prior,
                                        limits=final_limits)
-    e, _ = sampson_residuals(best, corr)
-    inl = np.abs(e[0]) < threshold_px
     it4 = 0
-    if inl.sum() >= NUM_PARAMS + 3:
-        prior_i = None if prior is None else prior * np.sqrt(inl.sum() / len(corr))
-        best, _, it4 = levenberg_marquardt(best, corr.subset(inl), lm.max_iterations,
-                                           lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
-                                           prior_inv_sigma=prior_i, limits=final_limits)
+    for _ in range(lm.polish_rounds):
+        # The prior matters in proportion to the noise (MAP: prior term ~ sigma^2): scale it by
+        # the noise level the fit shows, so exact data is fitted exactly.
+        e, _ = sampson_residuals(best, corr)
+        inl = np.abs(e[0]) < threshold_px
+        if inl.sum() < NUM_PARAMS + 3:
+            break
+        sigma = 1.4826 * float(np.median(np.abs(e[0])))  # MAD of all residuals
+        prior_i = None
+        if prior is not None:
+            noise = min(1.0, sigma / PRIOR_NOISE_REF_PX)
+            prior_i = prior * np.sqrt(inl.sum() / len(corr)) * noise
+        best, _, it = levenberg_marquardt(best, corr.subset(inl), lm.max_iterations,
+                                          lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
+                                          prior_inv_sigma=prior_i, limits=final_limits)
+        it4 += it
     total = (it1 + it2) * len(hyps) + it3 + it4
     return SearchResult(best, total, len(hyps))

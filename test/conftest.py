@@ -1,0 +1,49 @@
+"""Shared fixtures and the one table of test tolerances."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:  # the checkout is what we test
+    sys.path.insert(0, str(REPO_ROOT))
+
+# Every numeric tolerance of the suite, in one place (kornia / evo style).
+TOL = {
+    "jacobian_rel": 1e-5,  # analytic vs central finite differences, relative to column scale
+    "gt_residual_px": 1e-8,  # Sampson error of the ground-truth parameters, noise-free
+    "roundtrip": 1e-9,  # exp/log, row re-expression round trips
+    "rs_projection_px": 1e-6,  # fixed-point RS projection: row consistency
+    "noise_free_rot_deg": 0.05,  # RS estimator on exact RS correspondences it converges on
+    "gs_data_rot_deg": 0.05,  # any model on exact global-shutter correspondences
+    "gs_data_tdir_deg": 0.5,
+}
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def paper_scene():
+    from rsvo_ros.paper_scene import PaperScene
+
+    return PaperScene(seed=0)
+
+
+def ros_test_env(domain_id: int) -> dict[str, str]:
+    """Environment for a ROS process of a test: localhost discovery, a private domain."""
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(domain_id)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    venv = Path(sys.prefix)
+    env["AMENT_PREFIX_PATH"] = os.pathsep.join(
+        p for p in (str(venv), env.get("AMENT_PREFIX_PATH", "")) if p
+    )
+    return env
