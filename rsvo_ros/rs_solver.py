@@ -21,6 +21,7 @@ from rsvo_ros.rs_model import (
 MAX_STEP_ROTATION_RAD = 0.05  # largest rotation change of one LM step (trust region)
 MAX_STEP_TRANSLATION_RAD = 0.2  # largest change of the translation direction of one step
 VEL = slice(5, 17)  # velocities [w_p, v_p, w_c, v_c] in the 17-vector
+CHEIRALITY_POINTS = 100  # points that vote on a hypothesis' depth consistency
 PRIOR_NOISE_REF_PX = 1.0  # feature noise (px) at which the velocity prior has its full weight
 
 
@@ -272,7 +273,9 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
     cost = cauchy_cost(e, scale)
     if prior is not None:
         cost = cost + (hyps.vel**2) @ prior**2
-    consistent = cheirality_fraction(hyps, corr, np.abs(e) < 3.0 * scale) >= 0.75
+    check = _random_samples(len(corr), 1, min(CHEIRALITY_POINTS, len(corr)), rng)[0]
+    consistent = cheirality_fraction(hyps, corr.subset(check),
+                                     np.abs(e[:, check]) < 3.0 * scale) >= 0.75
     order = np.lexsort((cost, ~consistent))
     b = int(order[0])
     best = hyps.take(b)
