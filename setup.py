@@ -26,7 +26,7 @@ setup(
         "console_scripts": [
             "rsvo_node = rsvo_ros.cli:node_main",
             "rsvo_replay = rsvo_ros.cli:replay_main",
-            "rsvo_synth = rsvo_ros.cli:synth_main",
+            "rsvo_synth = rsvo_ros.synth_bag:main",
             "rsvo_bench = rsvo_ros.bench:main",
             "rsvo_play = rsvo_ros.cli:play_main",
         ],

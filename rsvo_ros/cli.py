@@ -32,11 +32,6 @@ def replay_main(argv: list[str] | None = None) -> int:
     sys.exit(_not_implemented("rsvo_replay", "bag replay arrives with the pipeline issue"))
 
 
-def synth_main(argv: list[str] | None = None) -> int:
-    """Entry point of ``rsvo_synth`` (synthetic rolling-shutter bags)."""
-    sys.exit(_not_implemented("rsvo_synth", "the bag renderer arrives with the synthetic issue"))
-
-
 def play_main(argv: list[str] | None = None) -> int:
     """Entry point of ``rsvo_play`` (publishes a bag's topics live)."""
     sys.exit(_not_implemented("rsvo_play", "bag playback arrives with the node issue"))

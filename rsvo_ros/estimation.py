@@ -134,9 +134,13 @@ def _pose_from_essential(
     E: np.ndarray, x_prev: np.ndarray, x_curr: np.ndarray, mask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Cheirality check of the four decompositions (OpenCV recoverPose on normalized points)."""
-    p = x_prev[mask, :2].astype(np.float64)
-    c = x_curr[mask, :2].astype(np.float64)
-    n_good, R, t, _ = cv2.recoverPose(E, p, c, np.eye(3))
+    if mask.sum() < MIN_POINTS["gs"]:
+        return np.eye(3), np.zeros(3), 0
+    p = np.ascontiguousarray(x_prev[mask, :2], dtype=np.float64)
+    c = np.ascontiguousarray(x_curr[mask, :2], dtype=np.float64)
+    n_good, R, t, _ = cv2.recoverPose(np.ascontiguousarray(E, dtype=np.float64), p, c, np.eye(3))
+    if n_good == 0:
+        return np.eye(3), np.zeros(3), 0
     return R, t.ravel() / max(np.linalg.norm(t), 1e-300), int(n_good)
 
 
@@ -281,15 +285,19 @@ def estimate_relative_pose(
         thr = ransac.threshold_px if model == "gs" else ransac.init_threshold_px
         max_it = ransac.max_iterations if model == "gs" else ransac.init_max_iterations
         R, t, mask, iters = _estimate_gs_opencv(corr, thr, ransac.confidence, max_it, seed)
-    if mask.sum() < min_inliers or np.linalg.norm(t) == 0:
+    if mask.sum() < min_inliers:
         return failed(f"too few inliers for a GS essential matrix ({int(mask.sum())})", mask,
                       iters)
     parallax = _rotation_only_residual_px(corr, rng)
+    has_pose = np.linalg.norm(t) > 0
     e_gs = _sampson_gs_px(_essential(R, t), corr.x_prev, corr.x_curr, corr.focal)
-    noise_px = float(np.median(e_gs[mask]))
+    noise_px = float(np.median(e_gs[mask])) if has_pose else 0.0
     if parallax < max(min_parallax_px, PARALLAX_TO_NOISE * noise_px):
         return failed(f"insufficient parallax ({parallax:.2f} px after the best rotation, "
                       f"noise {noise_px:.2f} px): pure rotation or no motion", mask, iters)
+    if not has_pose:
+        return failed("no decomposition of the essential matrix puts the points in front of "
+                      "both cameras", mask, iters)
 
     if model in ("gs", "mvo"):
         return finish(RelativePoseResult(True, model, R, t, mask, iterations=iters,
