@@ -27,11 +27,6 @@ def node_main(argv: list[str] | None = None) -> int:
     sys.exit(_not_implemented("rsvo_node", "the live node arrives with the node issue"))
 
 
-def replay_main(argv: list[str] | None = None) -> int:
-    """Entry point of ``rsvo_replay`` (offline pipeline over a rosbag2)."""
-    sys.exit(_not_implemented("rsvo_replay", "bag replay arrives with the pipeline issue"))
-
-
 def play_main(argv: list[str] | None = None) -> int:
     """Entry point of ``rsvo_play`` (publishes a bag's topics live)."""
     sys.exit(_not_implemented("rsvo_play", "bag playback arrives with the node issue"))

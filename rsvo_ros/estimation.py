@@ -16,8 +16,14 @@ import cv2
 import numpy as np
 
 from rsvo_ros.geometry import pose_from_row
-from rsvo_ros.rs_model import Correspondences, RSBatch, make_correspondences, sampson_residuals
-from rsvo_ros.rs_solver import LMOptions, fix_sign, search_fast, search_paper
+from rsvo_ros.rs_model import (
+    Correspondences,
+    RSBatch,
+    make_correspondences,
+    rs_depths,
+    sampson_residuals,
+)
+from rsvo_ros.rs_solver import LMOptions, fix_sign, pose_covariance, search_fast, search_paper
 
 __all__ = ["LMOptions", "RansacOptions", "RelativePoseResult", "estimate_relative_pose"]
 
@@ -49,7 +55,10 @@ class RelativePoseResult:
     ``R`` (3, 3), ``t`` (3,) unit: ``X_curr = R X_prev + t`` at row 0. ``inliers`` (N,) bool.
     ``w_*`` rad/s and ``v_*`` (units of ``t`` per second) in each frame's row-0 camera frame;
     zeros for the GS models. ``ok`` False means no pose could be trusted: ``reason`` says why and
-    ``R``/``t`` are identity/zero, never a made-up pose.
+    ``R``/``t`` are identity/zero, never a made-up pose. ``depths_*`` (N,): each point's depth
+    along its bearing in the camera of its own row, in units of ``|t| = 1`` (nan where it cannot
+    be triangulated). ``covariance`` (6, 6): of the rotation vector (rad) and ``t`` (units of
+    ``|t| = 1``) from the inliers' Gauss-Newton Hessian scaled by their residual variance.
     """
 
     ok: bool
@@ -66,6 +75,9 @@ class RelativePoseResult:
     cost: float = float("nan")  # final mean squared Sampson error of the inliers, px^2
     time_s: float = 0.0
     row_ref: float = 0.0  # the solver's internal reference row (informative)
+    depths_prev: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (N,) see below
+    depths_curr: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.inf))
 
     @property
     def num_inliers(self) -> int:
@@ -227,6 +239,8 @@ def estimate_relative_pose(
     lm: LMOptions | None = None,
     min_inliers: int = 15,
     min_parallax_px: float = 0.5,
+    rows_prev: np.ndarray | None = None,
+    rows_curr: np.ndarray | None = None,
 ) -> RelativePoseResult:
     """Relative pose of two frames from pixel correspondences.
 
@@ -248,6 +262,9 @@ def estimate_relative_pose(
         min_inliers: fewer inliers than this gives ``ok=False``.
         min_parallax_px: median parallax (after removing the rotation) below this gives
             ``ok=False`` (pure rotation or no motion: the translation is undefined).
+        rows_prev, rows_curr: (N,) sensor rows of the points when they differ from
+            ``pts_*[:, 1]`` (points undistorted from a lens-distorted image keep the exposure
+            time of their raw row).
 
     Raises:
         ValueError: bad input (too few points, NaN/inf, shape mismatch, singular K, all points
@@ -261,7 +278,8 @@ def estimate_relative_pose(
     lm = lm or LMOptions()
     rng = np.random.default_rng(seed)
     row_ref = float(K[1, 2])  # the principal point's row, ~ the image centre
-    corr = make_correspondences(pts_prev, pts_curr, K, line_delay, row_ref)
+    corr = make_correspondences(pts_prev, pts_curr, K, line_delay, row_ref,
+                                _rows(rows_prev, pts_prev), _rows(rows_curr, pts_curr))
     n = len(corr)
 
     def finish(res: RelativePoseResult) -> RelativePoseResult:
@@ -300,8 +318,13 @@ def estimate_relative_pose(
                       "both cameras", mask, iters)
 
     if model in ("gs", "mvo"):
-        return finish(RelativePoseResult(True, model, R, t, mask, iterations=iters,
-                                         cost=float(np.mean(e_gs[mask] ** 2))))
+        gs_state = RSBatch.from_pose(R, t)
+        depths_p, depths_c = rs_depths(gs_state, corr)
+        return finish(RelativePoseResult(
+            True, model, R, t, mask, iterations=iters, cost=float(np.mean(e_gs[mask] ** 2)),
+            depths_prev=depths_p[0], depths_curr=depths_c[0],
+            covariance=pose_covariance(gs_state, corr.subset(mask), gs_only=True),
+        ))  # fmt: skip
 
     start = RSBatch.from_pose(R, t)
     if mode == "paper":
@@ -326,10 +349,23 @@ def estimate_relative_pose(
     scale = np.linalg.norm(t0)
     if not np.isfinite(scale) or scale < 1e-12:
         return failed("degenerate RS solution (zero translation at row 0)", inliers, lm_iters)
+    depths_p, depths_c = rs_depths(state, corr)
+    cov = pose_covariance(state, corr.subset(inliers))
+    cov[3:, 3:] /= scale**2
     return finish(RelativePoseResult(
         True, "rs", R0, t0 / scale, inliers, w_p, v_p / scale, w_c, v_c / scale,
         iterations=lm_iters, cost=float(np.mean(e[0, inliers] ** 2)),
+        depths_prev=depths_p[0] / scale, depths_curr=depths_c[0] / scale, covariance=cov,
     ))  # fmt: skip
+
+
+def _rows(rows: np.ndarray | None, pts: np.ndarray) -> np.ndarray:
+    if rows is None:
+        return pts[:, 1]
+    rows = np.asarray(rows, dtype=float)
+    if rows.shape != (len(pts),) or not np.isfinite(rows).all():
+        raise ValueError(f"rows must be finite with shape ({len(pts)},), got {rows.shape}")
+    return rows
 
 
 def _gs_starts(corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacOptions,

@@ -148,9 +148,13 @@ class Correspondences:
 
 
 def make_correspondences(
-    pts_prev: np.ndarray, pts_curr: np.ndarray, K: np.ndarray, line_delay: float, row_ref: float
-) -> Correspondences:
-    """Pixels (N, 2) to :class:`Correspondences`; rows are the pixel ``v`` coordinates."""
+    pts_prev: np.ndarray, pts_curr: np.ndarray, K: np.ndarray, line_delay: float, row_ref: float,
+    rows_prev: np.ndarray | None = None, rows_curr: np.ndarray | None = None,
+) -> Correspondences:  # fmt: skip
+    """Pixels (N, 2) to :class:`Correspondences`; rows default to the pixel ``v`` coordinates
+    (give the raw sensor rows when the points were undistorted)."""
+    rows_prev = pts_prev[:, 1] if rows_prev is None else rows_prev
+    rows_curr = pts_curr[:, 1] if rows_curr is None else rows_curr
     K_inv = np.linalg.inv(K)
     ones = np.ones((len(pts_prev), 1))
     x_prev = np.hstack([pts_prev, ones]) @ K_inv.T
@@ -159,8 +163,8 @@ def make_correspondences(
     return Correspondences(
         x_prev,
         x_curr,
-        (pts_prev[:, 1] - row_ref) * line_delay,
-        (pts_curr[:, 1] - row_ref) * line_delay,
+        (np.asarray(rows_prev, float) - row_ref) * line_delay,
+        (np.asarray(rows_curr, float) - row_ref) * line_delay,
         float(focal),
     )
 

@@ -16,6 +16,7 @@ from rsvo_ros.rs_model import (
     RSBatch,
     rs_depths,
     sampson_residuals,
+    tangent_basis,
 )
 
 MAX_STEP_ROTATION_RAD = 0.05  # largest rotation change of one LM step (trust region)
@@ -41,9 +42,9 @@ class LMOptions:
     robust_scale_px: float = 2.0  # Cauchy loss scale of the all-points refinement
     max_angular_velocity: float = 5.0  # rad/s (286 deg/s): bound of the search
     max_readout_translation: float = 5.0  # baselines over half the readout: bound
-    prior_rotation_rad: float = 0.3  # prior std of the rotation over half the readout
-    prior_translation: float = 4.0  # prior std of the displacement over half the readout
-    max_rotation_change_rad: float = 0.35  # how far (20 deg) a run may rotate from its start
+    prior_rotation_rad: float = 0.1  # prior std of the rotation over half the readout
+    prior_translation: float = 2.0  # prior std of the displacement over half the readout
+    max_rotation_change_rad: float = 0.1  # how far (5.7 deg) a run may rotate from its start
     init_thresholds_px: tuple[float, ...] = (1.0, 8.0)  # extra GS starts (fast mode)
     samples_per_start: int = 8  # fast mode: LM runs on random samples from each GS start
     sample_size: int = 40  # fast mode: correspondences per sample
@@ -304,3 +305,29 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
         it4 += it
     total = (it1 + it2) * len(hyps) + it3 + it4
     return SearchResult(best, total, len(hyps))
+
+
+def pose_covariance(state: RSBatch, corr: Correspondences, gs_only: bool = False) -> np.ndarray:
+    """(6, 6) covariance of ``[rotation vector, t]`` of a single state (B = 1) from the
+    Gauss-Newton Hessian of its Sampson errors on ``corr`` (the inliers), scaled by their
+    residual variance: ``sigma^2 (J^T J)^-1``. The velocities are marginalised out (all 17 DOF)
+    unless ``gs_only``. Infinite where the data cannot constrain the pose."""
+    n = len(corr)
+    dof = 5 if gs_only else NUM_PARAMS
+    if n <= dof:
+        return np.full((6, 6), np.inf)
+    e, J = sampson_residuals(state, corr, jacobian=True)
+    J = J[0, :, :dof]
+    sigma2 = float(e[0] @ e[0]) / (n - dof)  # px^2; J is in px per parameter unit
+    H = J.T @ J
+    try:
+        cov = np.linalg.inv(H + 1e-12 * np.trace(H) * np.eye(dof)) * max(sigma2, 1e-12)
+    except np.linalg.LinAlgError:
+        return np.full((6, 6), np.inf)
+    B = tangent_basis(state.t)[0]  # t moves as B d (|t| = 1)
+    out = np.zeros((6, 6))
+    out[:3, :3] = cov[:3, :3]
+    out[3:, 3:] = B @ cov[3:5, 3:5] @ B.T
+    out[:3, 3:] = cov[:3, 3:5] @ B.T
+    out[3:, :3] = out[:3, 3:].T
+    return out if np.isfinite(out).all() else np.full((6, 6), np.inf)

@@ -14,7 +14,7 @@ import pytest
 from conftest import REPO_ROOT, ros_test_env
 
 CONSOLE_SCRIPTS = ("rsvo_node", "rsvo_replay", "rsvo_synth", "rsvo_bench", "rsvo_play")
-NOT_YET = ("rsvo_node", "rsvo_replay", "rsvo_play")  # until their issues land
+NOT_YET = ("rsvo_node", "rsvo_play")  # until their issues land
 
 
 def test_package_xml_declares_what_the_node_needs():

@@ -1,0 +1,215 @@
+"""The odometry pipeline: track, estimate each frame pair, chain poses with a consistent scale.
+
+Pure Python/numpy (no rclpy): the same object serves ``rsvo_replay`` and the live node; they
+differ only in where frames come from and where results go.
+
+Chaining as in the paper: ``T_{k+1} = T_k [R t; 0 1]^-1`` with ``X_curr = R X_prev + t``, i.e.
+``T_world_curr = T_world_prev @ inv(T_curr_prev)``. Scale: the first pair's baseline is
+``initial_scale``; each later pair's ``|t|`` makes the depths of the points it shares with the
+previous pair agree (median ratio, depths from the RS model in the shared frame's own row
+cameras); without enough shared points it keeps the previous baseline.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rsvo_ros.estimation import (
+    LMOptions,
+    RansacOptions,
+    RelativePoseResult,
+    estimate_relative_pose,
+)
+from rsvo_ros.tracker import FeatureTracker, TrackerOptions, undistort_points
+
+MIN_SHARED_FOR_SCALE = 8  # shared triangulated points needed to measure the relative scale
+HOLD_COVARIANCE_GROWTH = 4.0  # covariance multiplier of a held (not estimated) pose
+DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
+
+
+@dataclass
+class PipelineOptions:
+    """How the pipeline estimates; ``model``: "rs" | "gs" | "mvo"."""
+
+    model: str = "rs"
+    mode: str = "fast"
+    tracker: TrackerOptions = field(default_factory=TrackerOptions)
+    ransac: RansacOptions = field(default_factory=RansacOptions)
+    lm: LMOptions = field(default_factory=LMOptions)
+    min_tracks: int = 25  # fewer tracked correspondences: re-initialise
+    initial_scale: float = 1.0  # metres of the first pair's baseline (1 = up to scale)
+    max_scale_change: float = 5.0  # relative scale outside [1/x, x] is not trusted
+    seed: int = 0
+
+
+@dataclass
+class FrameResult:
+    """What the pipeline says about one input frame."""
+
+    index: int
+    stamp_ns: int
+    status: str  # "posed" (estimated), "first", "held" (pose kept), "skipped"
+    reason: str
+    T_world_cam: np.ndarray | None  # (4, 4), None when skipped
+    covariance: np.ndarray  # (6, 6) of [position, rotation vector] in the world frame
+    num_tracks: int = 0
+    num_inliers: int = 0
+    inlier_ratio: float = 0.0
+    scale: float = 0.0  # metres of this pair's baseline
+    time_ms: float = 0.0
+    relative: RelativePoseResult | None = None
+    pts_prev: np.ndarray | None = None  # raw pixels of the pair (for drawing)
+    pts_curr: np.ndarray | None = None
+
+    @property
+    def has_pose(self) -> bool:
+        return self.T_world_cam is not None
+
+
+def _inverse(T: np.ndarray) -> np.ndarray:
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+class OdometryPipeline:
+    """Feed frames with :meth:`process`; poses are ``T_world_camera`` at row-0 times."""
+
+    def __init__(self, K: np.ndarray, D: np.ndarray | None, line_delay: float,
+                 options: PipelineOptions | None = None):  # fmt: skip
+        self.options = options or PipelineOptions()
+        self.set_camera(K, D, line_delay)
+        self.tracker = FeatureTracker(self.options.tracker)
+        self.reset()
+
+    def set_camera(self, K: np.ndarray, D: np.ndarray | None, line_delay: float) -> None:
+        K = np.asarray(K, float)
+        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"camera matrix K must be a finite 3x3 with positive focal "
+                             f"lengths, got {K.tolist()}")  # fmt: skip
+        if not np.isfinite(line_delay) or line_delay < 0:
+            raise ValueError(f"line_delay must be finite and >= 0, got {line_delay}")
+        self.K = K
+        self.D = None if D is None or len(D) == 0 else np.asarray(D, float)
+        self.line_delay = float(line_delay)
+
+    def reset(self) -> None:
+        """Forget everything: the next frame starts a new trajectory at the identity."""
+        self.tracker.reset()
+        self.T_world_cam = np.eye(4)
+        self.covariance = np.zeros((6, 6))
+        self._last_stamp: int | None = None
+        self._index = 0
+        self._prev_depths: dict[int, float] = {}  # track id -> metric depth in the last frame
+        self._last_scale = self.options.initial_scale
+        self._started = False
+
+    def process(self, stamp_ns: int, gray: np.ndarray) -> FrameResult:
+        """One new frame (uint8 gray). Never raises for bad data: returns a skipped result."""
+        t0 = time.perf_counter()
+        idx = self._index
+        self._index += 1
+
+        def result(status, reason="", **kw):
+            res = FrameResult(idx, stamp_ns, status, reason,
+                              None if status == "skipped" else self.T_world_cam.copy(),
+                              self.covariance.copy(), **kw)  # fmt: skip
+            res.time_ms = (time.perf_counter() - t0) * 1e3
+            return res
+
+        if gray is None or gray.ndim != 2 or gray.dtype != np.uint8 or gray.size == 0:
+            return result("skipped", "not a non-empty uint8 gray image")
+        if self._last_stamp is not None and stamp_ns <= self._last_stamp:
+            kind = "duplicate" if stamp_ns == self._last_stamp else "backwards"
+            return result("skipped", f"{kind} stamp ({stamp_ns} after {self._last_stamp} ns)")
+        self._last_stamp = stamp_ns
+        pair = self.tracker.track(gray)
+        if not self._started:
+            self._started = True
+            return result("first", "first frame: trajectory origin",
+                          num_tracks=self.tracker.num_tracks)
+        n = len(pair.ids)
+        if n < self.options.min_tracks:
+            self._lose_track()
+            return result("held", f"lost tracking ({n} tracks): re-initialised",
+                          num_tracks=self.tracker.num_tracks)
+        pts_prev = undistort_points(pair.pts_prev, self.K, self.D)
+        pts_curr = undistort_points(pair.pts_curr, self.K, self.D)
+        try:
+            rel = estimate_relative_pose(
+                pts_prev, pts_curr, self.K, self.line_delay, model=self.options.model,
+                seed=self.options.seed + idx, mode=self.options.mode,
+                ransac=self.options.ransac, lm=self.options.lm,
+                rows_prev=pair.pts_prev[:, 1], rows_curr=pair.pts_curr[:, 1],
+            )  # fmt: skip
+        except ValueError as exc:  # e.g. all tracks collapsed onto one point
+            self._lose_track()
+            return result("held", f"estimation refused the pair: {exc}", num_tracks=n)
+        if not rel.ok:
+            self._hold()
+            return result("held", f"no pose for this pair: {rel.reason}", num_tracks=n,
+                          num_inliers=rel.num_inliers, inlier_ratio=rel.inlier_ratio,
+                          relative=rel, pts_prev=pair.pts_prev, pts_curr=pair.pts_curr)
+        scale, scale_note = self._relative_scale(pair.ids, rel)
+        T_curr_prev = np.eye(4)
+        T_curr_prev[:3, :3] = rel.R
+        T_curr_prev[:3, 3] = rel.t * scale
+        T_new = self.T_world_cam @ _inverse(T_curr_prev)
+        if not np.isfinite(T_new).all():
+            self._hold()
+            return result("held", "non-finite chained pose", num_tracks=n, relative=rel)
+        self.T_world_cam = T_new
+        self._accumulate_covariance(rel, scale)
+        depth = rel.depths_curr * scale
+        good = rel.inliers & np.isfinite(depth) & (depth > 0)
+        self._prev_depths = dict(zip(pair.ids[good].tolist(), depth[good].tolist(), strict=True))
+        self._last_scale = scale
+        return result("posed", scale_note, num_tracks=n, num_inliers=rel.num_inliers,
+                      inlier_ratio=rel.inlier_ratio, scale=scale, relative=rel,
+                      pts_prev=pair.pts_prev, pts_curr=pair.pts_curr)
+
+    # ------------------------------------------------------------------ internals
+
+    def _relative_scale(self, ids: np.ndarray, rel: RelativePoseResult) -> tuple[float, str]:
+        """Baseline (m) of this pair from the depths it shares with the previous pair."""
+        ratios = []
+        for i, d_new, inl in zip(ids.tolist(), rel.depths_prev, rel.inliers, strict=True):
+            d_old = self._prev_depths.get(i)
+            if inl and d_old is not None and np.isfinite(d_new) and d_new > 0:
+                ratios.append(d_old / d_new)
+        if len(ratios) >= MIN_SHARED_FOR_SCALE:
+            s = float(np.median(ratios))
+            lim = self.options.max_scale_change
+            if np.isfinite(s) and self._last_scale / lim <= s <= self._last_scale * lim:
+                return s, ""
+            return self._last_scale, f"scale {s:.3g} rejected: kept the previous baseline"
+        if not self._prev_depths:
+            return self._last_scale, "scale from the previous baseline (no shared depths)"
+        return self._last_scale, f"scale from the previous baseline ({len(ratios)} shared)"
+
+    def _accumulate_covariance(self, rel: RelativePoseResult, scale: float) -> None:
+        """Random-walk growth: the pair's covariance, rotated into the world frame."""
+        R_wc = self.T_world_cam[:3, :3]
+        rel_cov = np.asarray(rel.covariance, float)
+        if not np.isfinite(rel_cov).all():
+            rel_cov = np.diag([1e-4, 1e-4, 1e-4, 1.0, 1.0, 1.0])
+        step = np.zeros((6, 6))
+        step[:3, :3] = R_wc @ rel_cov[3:, 3:] @ R_wc.T * scale**2 + np.eye(3) * 1e-9
+        step[3:, 3:] = R_wc @ rel_cov[:3, :3] @ R_wc.T + np.eye(3) * 1e-12
+        # a poor fit counts more: inflate by the share of outliers
+        step *= 1.0 / max(rel.inlier_ratio, 0.05) ** 2
+        self.covariance = self.covariance + step
+
+    def _hold(self) -> None:
+        """Keep the pose; the uncertainty grows; depths of the skipped pair are unknown."""
+        grow = np.diag([DEFAULT_POSITION_VARIANCE] * 3 + [1e-3] * 3) * HOLD_COVARIANCE_GROWTH
+        self.covariance = self.covariance + grow * max(self._last_scale, 1e-3) ** 2
+        self._prev_depths = {}
+
+    def _lose_track(self) -> None:
+        """Hold the pose; the tracker has already re-detected corners on this frame."""
+        self._hold()
