@@ -112,52 +112,50 @@ class CorridorScene:
                height: int) -> np.ndarray:
         """uint8 (height, width) image; row ``r`` seen from ``(R_rows[r], p_rows[r])``
         (``T_world_camera`` of that row)."""
-        u = np.arange(width, dtype=np.float32)
-        v = np.arange(height, dtype=np.float32)
-        Kinv = np.linalg.inv(K).astype(np.float32)
-        dirs_cam = np.stack([Kinv[0, 0] * u[None, :] + Kinv[0, 2] + 0 * v[:, None],
-                             np.broadcast_to(Kinv[1, 1] * v[:, None] + Kinv[1, 2],
-                                             (height, width)),
-                             np.ones((height, width), np.float32)], axis=-1)  # fmt: skip
-        R32 = R_rows.astype(np.float32)
-        d = np.einsum("rij,rcj->rci", R32, dirs_cam)  # world ray directions (H, W, 3)
-        o = p_rows.astype(np.float32)[:, None, :]  # (H, 1, 3)
-        best = np.full((height, width), np.inf, np.float32)
+        f32 = np.float32
+        Kinv = np.linalg.inv(K)
+        a = (Kinv[0, 0] * np.arange(width) + Kinv[0, 2]).astype(f32)[None, :]  # x of a column
+        b = Kinv[1, 1] * np.arange(height) + Kinv[1, 2]  # y of a row
+        # world ray of pixel (r, c): R_r (a_c, b_r, 1) = a_c R_r[:, 0] + (b_r R_r[:, 1] + R_r[:, 2])
+        X = R_rows[:, :, 0].astype(f32)
+        W = (b[:, None] * R_rows[:, :, 1] + R_rows[:, :, 2]).astype(f32)
+        d = [a * X[:, i:i + 1] + W[:, i:i + 1] for i in range(3)]  # (H, W) each
+        o = [p_rows[:, i:i + 1].astype(f32) for i in range(3)]  # (H, 1) each
+        best = np.full((height, width), np.inf, f32)
         surf = np.full((height, width), -1, np.int8)
-        tex_s = np.zeros((height, width), np.float32)
-        tex_t = np.zeros((height, width), np.float32)
+        tex_s = np.zeros((height, width), f32)
+        tex_t = np.zeros((height, width), f32)
         cx, cz = self.centre
-        for which in (0, 1):  # inner wall (camera outside it), outer wall (camera inside)
-            A, B = self.wall_axes(which)
-            ox, oz = (o[..., 0] - cx) / A, (o[..., 2] - cz) / B
-            dx, dz = d[..., 0] / A, d[..., 2] / B
-            qa = dx * dx + dz * dz
-            qb = ox * dx + oz * dz
-            qc = ox * ox + oz * oz - 1.0
-            disc = qb * qb - qa * qc
-            root = np.sqrt(np.maximum(disc, 0.0))
-            lam = (-qb - root) / qa if which == 0 else (-qb + root) / qa
-            lam = np.where((disc > 0) & (lam > 1e-3), lam, np.inf)
-            hit = lam < best
-            px = o[..., 0] + lam * d[..., 0]
-            py = o[..., 1] + lam * d[..., 1]
-            pz = o[..., 2] + lam * d[..., 2]
-            theta = np.arctan2((pz - cz) / B, (px - cx) / A)
-            best = np.where(hit, lam, best)
-            surf[hit] = which
-            tex_s = np.where(hit, theta * 0.5 * (A + B), tex_s)
-            tex_t = np.where(hit, py, tex_t)
-        for which, y0 in ((2, self.floor_y), (3, self.ceiling_y)):
-            lam = (y0 - o[..., 1]) / np.where(np.abs(d[..., 1]) > 1e-9, d[..., 1], 1e-9)
-            lam = np.where(lam > 1e-3, lam, np.inf)
-            hit = lam < best
-            best = np.where(hit, lam, best)
-            surf[hit] = which
-            tex_s = np.where(hit, o[..., 0] + lam * d[..., 0], tex_s)
-            tex_t = np.where(hit, o[..., 2] + lam * d[..., 2], tex_t)
-        img = np.zeros((height, width), np.float32)
-        map_x = ((tex_s * TEXELS_PER_M) % TEXTURE_SIZE).astype(np.float32)
-        map_y = ((tex_t * TEXELS_PER_M) % TEXTURE_SIZE).astype(np.float32)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            for which in (0, 1):  # inner wall (camera outside it), outer wall (camera inside)
+                A, B = self.wall_axes(which)
+                ox, oz = (o[0] - cx) / A, (o[2] - cz) / B
+                dx, dz = d[0] / A, d[2] / B
+                qa = dx * dx + dz * dz
+                qb = ox * dx + oz * dz
+                qc = ox * ox + oz * oz - 1.0
+                disc = qb * qb - qa * qc
+                root = np.sqrt(np.maximum(disc, 0.0))
+                lam = (-qb - root) / qa if which == 0 else (-qb + root) / qa
+                hit = (disc > 0) & (lam > 1e-3) & (lam < best)
+                lam_h = lam[hit]
+                px = np.broadcast_to(o[0], lam.shape)[hit] + lam_h * d[0][hit]
+                pz = np.broadcast_to(o[2], lam.shape)[hit] + lam_h * d[2][hit]
+                best[hit] = lam_h
+                surf[hit] = which
+                tex_s[hit] = np.arctan2((pz - cz) / B, (px - cx) / A) * 0.5 * (A + B)
+                tex_t[hit] = np.broadcast_to(o[1], lam.shape)[hit] + lam_h * d[1][hit]
+            for which, y0 in ((2, self.floor_y), (3, self.ceiling_y)):
+                lam = (y0 - o[1]) / d[1]
+                hit = (lam > 1e-3) & (lam < best)
+                lam_h = lam[hit]
+                best[hit] = lam_h
+                surf[hit] = which
+                tex_s[hit] = np.broadcast_to(o[0], lam.shape)[hit] + lam_h * d[0][hit]
+                tex_t[hit] = np.broadcast_to(o[2], lam.shape)[hit] + lam_h * d[2][hit]
+        img = np.zeros((height, width), f32)
+        map_x = np.mod(tex_s * TEXELS_PER_M, TEXTURE_SIZE).astype(f32)
+        map_y = np.mod(tex_t * TEXELS_PER_M, TEXTURE_SIZE).astype(f32)
         for which, tex in enumerate(self.textures):
             mask = surf == which
             if not mask.any():
