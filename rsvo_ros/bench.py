@@ -250,6 +250,7 @@ def box_plot(records: list[TrialRecord], levels, path: Path) -> None:
                 ax.plot([], [], color=color, label=method)
             ax.set_xticks(np.arange(len(levels)), [f"Lev {lv}" for lv in levels])
             ax.set_yscale("symlog", linthresh=0.1 if field == "rot_err_deg" else 0.01)
+            ax.set_ylim(bottom=0.0)
             ax.set_ylabel(ylabel)
             ax.grid(True, axis="y", alpha=0.3)
             if row == 0:

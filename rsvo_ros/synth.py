@@ -116,7 +116,7 @@ class CorridorScene:
         Kinv = np.linalg.inv(K)
         a = (Kinv[0, 0] * np.arange(width) + Kinv[0, 2]).astype(f32)[None, :]  # x of a column
         b = Kinv[1, 1] * np.arange(height) + Kinv[1, 2]  # y of a row
-        # world ray of pixel (r, c): R_r (a_c, b_r, 1) = a_c R_r[:, 0] + (b_r R_r[:, 1] + R_r[:, 2])
+        # world ray of pixel (r, c): R_r (a_c, b_r, 1) = a_c R_r[:, 0] + b_r R_r[:, 1] + R_r[:, 2]
         X = R_rows[:, :, 0].astype(f32)
         W = (b[:, None] * R_rows[:, :, 1] + R_rows[:, :, 2]).astype(f32)
         d = [a * X[:, i:i + 1] + W[:, i:i + 1] for i in range(3)]  # (H, W) each
