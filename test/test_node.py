@@ -1,0 +1,166 @@
+"""rsvo_node across processes: a player, the node and a separate subscriber (real DDS).
+
+Each test has its own ROS_DOMAIN_ID and localhost discovery; processes are torn down at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REPO_ROOT, ros_test_env
+
+from rsvo_ros.replay import main as replay_main
+from rsvo_ros.synth import SynthConfig
+from rsvo_ros.synth_bag import write_bag
+
+pytestmark = pytest.mark.ros
+HELPERS = REPO_ROOT / "test" / "ros_helpers"
+BIN = Path(sys.executable).parent
+FRAMES = 24
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("nodebag") / "vehicle"
+    write_bag(path, SynthConfig(frames=FRAMES, motion="vehicle", severity=1.0, width=320,
+                                height=180, seed=5), "sqlite3", progress=False)
+    return path
+
+
+class Graph:
+    """Processes of one test, killed at the end whatever happens."""
+
+    def __init__(self, domain: int, tmp: Path):
+        self.env = ros_test_env(domain)
+        self.tmp = tmp
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, name: str, args: list[str]) -> subprocess.Popen:
+        log = open(self.tmp / f"{name}.log", "w")
+        p = subprocess.Popen(args, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                             start_new_session=True)
+        self.procs.append(p)
+        return p
+
+    def log(self, name: str) -> str:
+        return (self.tmp / f"{name}.log").read_text()
+
+    def close(self):
+        for p in self.procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGINT)
+        for p in self.procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+
+
+@pytest.fixture
+def graph(tmp_path, request):
+    domain = 100 + (os.getpid() + abs(hash(request.node.name))) % 100
+    g = Graph(domain, tmp_path)
+    yield g
+    g.close()
+
+
+def _wait_file(path: Path, timeout: float) -> bool:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if path.exists():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def _run_graph(graph: Graph, bag: Path, node_args: list[str], play_args: list[str],
+               expected: int) -> dict:
+    rec = graph.tmp / "rec.json"
+    graph.start("recorder", [sys.executable, str(HELPERS / "record_odom.py"), str(rec),
+                             str(expected), "90"])  # fmt: skip
+    node = graph.start("node", [str(BIN / "rsvo_node"), "--ros-args", *node_args])
+    assert _wait_file(Path(str(rec) + ".ready"), 40), graph.log("node")
+    player = graph.start("player", [str(BIN / "rsvo_play"), str(bag), "--topics",
+                                    "/camera/image_raw", "/camera/camera_info",
+                                    "--wait-for-subscribers", "30", "--start-delay", "1",
+                                    *play_args])  # fmt: skip
+    assert player.wait(timeout=90) == 0, graph.log("player")
+    assert _wait_file(rec, 60), graph.log("recorder")
+    assert node.poll() is None, graph.log("node")  # still alive
+    return json.loads(rec.read_text())
+
+
+def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_path):
+    """Player -> node -> separate subscriber; the trajectory is the offline pipeline's."""
+    data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
+                      ["--rate", "0.5"], FRAMES)
+    odom = data["odom"]
+    assert len(odom) == FRAMES, graph.log("node")  # reliable at 15 Hz: every frame
+    assert {o["frame_id"] for o in odom} == {"odom"}
+    assert {o["child"] for o in odom} == {"camera_optical_frame"}
+    poses = np.array([o["pose"] for o in odom])
+    assert np.isfinite(poses).all()
+    assert max(data["path_lengths"]) == len(odom)
+    # The bound: the node runs the same pipeline as rsvo_replay, so on the frames it received
+    # its poses are the offline ones (identical inputs and seeds).
+    replay_main([str(small_bag), "--output", str(tmp_path / "ref"), "--model", "gs",
+                 "--line-delay", "0.0002", "--no-progress"])
+    ref = {}
+    for line in (tmp_path / "ref" / "trajectory.tum").read_text().splitlines():
+        v = [float(x) for x in line.split()]
+        ref[round(v[0] * 1e9)] = np.array(v[1:])
+    assert sorted(ref) == [o["stamp_ns"] for o in odom]
+    for o in odom:
+        assert np.allclose(o["pose"], ref[o["stamp_ns"]], atol=1e-6)
+    diag = data["diagnostics"][-1]
+    assert int(diag["received"]) == FRAMES and int(diag["dropped"]) == 0
+
+
+def test_best_effort_publisher_connects(graph, small_bag):
+    data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
+                      ["--rate", "0.5", "--qos", "best_effort"], FRAMES)
+    assert len(data["odom"]) >= FRAMES // 2
+    assert "best effort" in graph.log("node")
+
+
+def test_invalid_parameters_fail_at_start_up(tmp_path):
+    env = ros_test_env(199)
+    for args, word in ((["-p", "model:=fisheye"], "model"),
+                       (["-p", "max_features:=3"], "max_features"),
+                       (["-p", "line_delay:=-1.0"], "line_delay"),
+                       (["-p", "base_to_camera:=[0.0, 0.0]"], "base_to_camera")):
+        proc = subprocess.run([str(BIN / "rsvo_node"), "--ros-args", *args], env=env,
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2, (args, proc.stdout, proc.stderr)
+        assert word in proc.stderr and "invalid parameter" in proc.stderr
+
+
+def test_bad_images_are_reported_and_good_ones_still_processed(graph):
+    frames = 24
+    rec = graph.tmp / "rec.json"
+    graph.start("recorder", [sys.executable, str(HELPERS / "record_odom.py"), str(rec),
+                             "16", "90"])  # fmt: skip
+    node = graph.start("node", [str(BIN / "rsvo_node"), "--ros-args", "-p", "model:=gs",
+                                "-p", "line_delay:=0.0002"])  # fmt: skip
+    assert _wait_file(Path(str(rec) + ".ready"), 40), graph.log("node")
+    pub = graph.start("publisher", [sys.executable, str(HELPERS / "publish_mixed.py"),
+                                    str(frames)])  # fmt: skip
+    assert pub.wait(timeout=90) == 0, graph.log("publisher")
+    assert "sent 16 good frames" in graph.log("publisher")
+    assert _wait_file(rec, 60)
+    assert node.poll() is None, graph.log("node")  # survived
+    data = json.loads(rec.read_text())
+    assert len(data["odom"]) == 16  # one pose per good frame
+    diag = data["diagnostics"][-1]
+    assert int(diag["bad"]) == 8 and int(diag["received"]) == frames
+    log = graph.log("node")
+    for kind in ("unsupported encoding", "shorter than a row", "empty image", "bytes"):
+        assert log.count(kind) == 1, (kind, log)  # logged once per kind
