@@ -3,7 +3,7 @@
 usage: record_odom.py OUT.json EXPECTED TIMEOUT_S
 Writes OUT.json.ready once a /rsvo/odom publisher is discovered (the test starts the player
 only then: volatile messages published before discovery are lost). Stops after EXPECTED
-odometry messages (then 2 s more) or TIMEOUT_S.
+odometry messages (then 2 s more), 5 s after the last one (a lossy link), or at TIMEOUT_S.
 """
 
 import json
@@ -14,6 +14,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+IDLE_S = 5.0
 
 
 def main():
@@ -54,6 +56,8 @@ def main():
         if len(odom) >= expected and done_at is None:
             done_at = time.monotonic()
         if done_at is not None and time.monotonic() - done_at > 2.0:
+            break
+        if odom and time.time() - odom[-1]["t_recv"] > IDLE_S:
             break
     with open(out, "w") as f:
         json.dump({"odom": odom, "diagnostics": diags, "path_lengths": paths}, f)
