@@ -26,6 +26,9 @@ from rsvo_ros.estimation import (
 from rsvo_ros.tracker import FeatureTracker, TrackerOptions, undistort_points
 
 MIN_SHARED_FOR_SCALE = 8  # shared triangulated points needed to measure the relative scale
+MAX_DEPTH_IN_BASELINES = 40.0  # farther points do not vote on the scale
+SCALE_SMOOTHING = 0.15  # weight of a pair's measured baseline against the previous one (log)
+MAX_SCALE_STEP = 1.25  # largest change of the baseline from one pair to the next
 HOLD_COVARIANCE_GROWTH = 4.0  # covariance multiplier of a held (not estimated) pose
 DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
 
@@ -175,21 +178,30 @@ class OdometryPipeline:
     # ------------------------------------------------------------------ internals
 
     def _relative_scale(self, ids: np.ndarray, rel: RelativePoseResult) -> tuple[float, str]:
-        """Baseline (m) of this pair from the depths it shares with the previous pair."""
+        """Baseline (m) of this pair from the depths it shares with the previous pair.
+
+        Only points within ``MAX_DEPTH_IN_BASELINES`` of the camera vote (far points have
+        ill-conditioned depths); the measured value is blended with the previous baseline in
+        log space (``SCALE_SMOOTHING``) and its change per pair is bounded: cameras on vehicles
+        and in hands change speed slowly compared to the noise of two-view depths.
+        """
         ratios = []
         for i, d_new, inl in zip(ids.tolist(), rel.depths_prev, rel.inliers, strict=True):
             d_old = self._prev_depths.get(i)
-            if inl and d_old is not None and np.isfinite(d_new) and d_new > 0:
+            if (inl and d_old is not None and np.isfinite(d_new)
+                    and 0 < d_new < MAX_DEPTH_IN_BASELINES):  # fmt: skip
                 ratios.append(d_old / d_new)
-        if len(ratios) >= MIN_SHARED_FOR_SCALE:
-            s = float(np.median(ratios))
-            lim = self.options.max_scale_change
-            if np.isfinite(s) and self._last_scale / lim <= s <= self._last_scale * lim:
-                return s, ""
-            return self._last_scale, f"scale {s:.3g} rejected: kept the previous baseline"
-        if not self._prev_depths:
-            return self._last_scale, "scale from the previous baseline (no shared depths)"
-        return self._last_scale, f"scale from the previous baseline ({len(ratios)} shared)"
+        last = self._last_scale
+        if len(ratios) < MIN_SHARED_FOR_SCALE:
+            why = "no shared depths" if not self._prev_depths else f"{len(ratios)} shared"
+            return last, f"scale from the previous baseline ({why})"
+        measured = float(np.exp(np.median(np.log(ratios))))
+        lim = self.options.max_scale_change
+        if not (np.isfinite(measured) and last / lim <= measured <= last * lim):
+            return last, f"scale {measured:.3g} rejected: kept the previous baseline"
+        a = SCALE_SMOOTHING
+        s = float(np.exp((1 - a) * np.log(last) + a * np.log(measured)))
+        return float(np.clip(s, last / MAX_SCALE_STEP, last * MAX_SCALE_STEP)), ""
 
     def _accumulate_covariance(self, rel: RelativePoseResult, scale: float) -> None:
         """Random-walk growth: the pair's covariance, rotated into the world frame."""

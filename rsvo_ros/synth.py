@@ -219,12 +219,13 @@ class ShakeModel:
             pf = np.array([1.8, 3.6, 0.9, 7.0])
             pa = np.array([[0.01, 0.03, 0.005], [0.004, 0.01, 0.003], [0.02, 0.01, 0.01],
                            [0.002, 0.003, 0.002]])  # fmt: skip
-        else:  # vehicle: body pitch / roll and road vibration 8-18 Hz
-            rf = np.array([1.3, 8.5, 13.0, 17.5])
-            ra = np.radians([0.6, 0.25, 0.2, 0.12])[:, None] * rng.uniform(0.6, 1.0, (4, 3))
-            pf = np.array([1.3, 9.0, 14.0, 18.0])
-            pa = np.array([[0.01, 0.02, 0.0], [0.001, 0.004, 0.0], [0.001, 0.003, 0.0],
-                           [0.0005, 0.002, 0.0]])  # fmt: skip
+        else:  # vehicle: body pitch / roll / yaw on a rough road, 1-6 Hz (slower than a
+            # frame's readout, so each frame's RS motion is close to constant velocity)
+            rf = np.array([1.2, 2.6, 4.1, 5.9])
+            ra = np.radians([1.0, 0.8, 0.6, 0.4])[:, None] * rng.uniform(0.6, 1.0, (4, 3))
+            pf = np.array([1.2, 2.6, 4.1, 5.9])
+            pa = np.array([[0.01, 0.02, 0.0], [0.005, 0.01, 0.0], [0.002, 0.006, 0.0],
+                           [0.001, 0.003, 0.0]])  # fmt: skip
         return ShakeModel(severity * ra, rf, rng.uniform(0, 2 * np.pi, (4, 3)),
                           severity * pa, pf, rng.uniform(0, 2 * np.pi, (4, 3)))
 
