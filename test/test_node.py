@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -16,7 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import REPO_ROOT, ros_test_env
+from scipy.spatial.transform import Rotation
 
+from rsvo_ros.compare import read_ground_truth
+from rsvo_ros.replay import accuracy
 from rsvo_ros.replay import main as replay_main
 from rsvo_ros.synth import SynthConfig
 from rsvo_ros.synth_bag import write_bag
@@ -82,11 +86,12 @@ def _wait_file(path: Path, timeout: float) -> bool:
 
 
 def _run_graph(graph: Graph, bag: Path, node_args: list[str], play_args: list[str],
-               expected: int) -> dict:
+               expected: int, node_cmd: list[str] | None = None) -> dict:
     rec = graph.tmp / "rec.json"
     graph.start("recorder", [sys.executable, str(HELPERS / "record_odom.py"), str(rec),
                              str(expected), "90"])  # fmt: skip
-    node = graph.start("node", [str(BIN / "rsvo_node"), "--ros-args", *node_args])
+    node = graph.start("node", [*(node_cmd or [str(BIN / "rsvo_node")]), "--ros-args",
+                                *node_args])
     assert _wait_file(Path(str(rec) + ".ready"), 40), graph.log("node")
     player = graph.start("player", [str(BIN / "rsvo_play"), str(bag), "--topics",
                                     "/camera/image_raw", "/camera/camera_info",
@@ -122,6 +127,46 @@ def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_pa
         assert np.allclose(o["pose"], ref[o["stamp_ns"]], atol=1e-6)
     diag = data["diagnostics"][-1]
     assert int(diag["received"]) == FRAMES and int(diag["dropped"]) == 0
+    # and against ground truth: the same ATE as the offline replay, which is small next to the
+    # ~5 m this camera drives (a wrong frame or chaining order would break both)
+    ref_summary = json.loads((tmp_path / "ref" / "summary.json").read_text())
+    est = {o["stamp_ns"]: _pose_matrix(o["pose"]) for o in odom}
+    gt = read_ground_truth(small_bag)
+    ate = accuracy(gt, est)["ate_m"]["rmse"]
+    assert ate == pytest.approx(ref_summary["accuracy"]["ate_m"]["rmse"], abs=1e-6)
+    assert ate < 0.1 * _path_length(gt)
+
+
+def _pose_matrix(p):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(p[3:]).as_matrix()
+    T[:3, 3] = p[:3]
+    return T
+
+
+def _path_length(poses: dict) -> float:
+    xyz = np.array([poses[s][:3, 3] for s in sorted(poses)])
+    return float(np.sum(np.linalg.norm(np.diff(xyz, axis=0), axis=1)))
+
+
+def test_colcon_installed_node_runs_the_same_graph(graph, small_bag, tmp_path):
+    """`ros2 run rsvo_ros rsvo_node` starts install/rsvo_ros/lib/rsvo_ros/rsvo_node."""
+    ws = tmp_path / "ws"
+    src = ws / "src" / "rsvo_ros"
+    src.parent.mkdir(parents=True)
+    shutil.copytree(REPO_ROOT, src, ignore=shutil.ignore_patterns(
+        ".venv", ".git", "build", "install", "log", "results", "__pycache__", "*.egg-info",
+        ".pytest_cache", ".ruff_cache", "docs"))
+    proc = subprocess.run([str(BIN / "colcon"), "build", "--base-paths", "src"], cwd=ws,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    install = ws / "install" / "rsvo_ros"
+    site = next(install.glob("lib/python3*/site-packages"))
+    graph.env["PYTHONPATH"] = str(site)
+    data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
+                      ["--rate", "0.5"], FRAMES,
+                      node_cmd=[str(install / "lib" / "rsvo_ros" / "rsvo_node")])
+    assert len(data["odom"]) == FRAMES, graph.log("node")
 
 
 def test_best_effort_publisher_connects(graph, small_bag):
