@@ -178,6 +178,9 @@ class RsvoNode(Node):
             self._bad("camera info with an invalid K")
             return
         self._camera = (K, D if np.any(D) else None, msg.width, msg.height)
+        if self.pipeline is None:  # build it now, not on the first image (keeps that one fast)
+            with self._lock:
+                self._ensure_pipeline()
 
     def _on_image(self, msg: Image) -> None:
         self._recv_times.append(time.monotonic())
@@ -197,6 +200,17 @@ class RsvoNode(Node):
         response.message = "odometry reset: the next frame is the new origin"
         self.get_logger().info(response.message)
         return response
+
+    def _ensure_pipeline(self) -> None:
+        """Create the pipeline once the camera is known (call with the lock held)."""
+        if self.pipeline is not None or self._camera is None:
+            return
+        K, D, _, _ = self._camera
+        opts = PipelineOptions(model=self.p["model"],
+                               tracker=TrackerOptions(max_features=int(self.p["max_features"])))
+        opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
+        opts.lm.max_iterations = int(self.p["lm_max_iterations"])
+        self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)
 
     def _bad(self, kind: str) -> None:
         self.stats["bad"] += 1
@@ -235,15 +249,8 @@ class RsvoNode(Node):
             return
         t0 = time.perf_counter()
         with self._lock:
-            if self.pipeline is None:
-                opts = PipelineOptions(model=self.p["model"],
-                                       tracker=TrackerOptions(max_features=int(
-                                           self.p["max_features"])))  # fmt: skip
-                opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
-                opts.lm.max_iterations = int(self.p["lm_max_iterations"])
-                self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)
-            else:
-                self.pipeline.set_camera(K, D, float(self.p["line_delay"]))
+            self._ensure_pipeline()
+            self.pipeline.set_camera(K, D, float(self.p["line_delay"]))
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             res = self.pipeline.process(stamp, gray)
         self._proc_ms.append((time.perf_counter() - t0) * 1e3)

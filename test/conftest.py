@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -35,6 +36,25 @@ def paper_scene():
     from rsvo_ros.paper_scene import PaperScene
 
     return PaperScene(seed=0)
+
+
+def colcon_build(workspace: Path) -> tuple[subprocess.CompletedProcess, Path]:
+    """Copy the checkout to ``workspace/src/rsvo_ros`` and ``colcon build`` it there.
+
+    Returns the colcon process and ``install/rsvo_ros``.
+    """
+    import shutil
+
+    src = workspace / "src" / "rsvo_ros"
+    src.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(REPO_ROOT, src, ignore=shutil.ignore_patterns(
+        ".venv", ".git", "build", "install", "log", "results", "__pycache__", "*.egg-info",
+        ".pytest_cache", ".ruff_cache", "docs"))
+    colcon = shutil.which("colcon") or str(Path(sys.executable).parent / "colcon")
+    proc = subprocess.run([colcon, "build", "--base-paths", "src", "--event-handlers",
+                           "console_direct-"], cwd=workspace, capture_output=True, text=True,
+                          timeout=600)  # fmt: skip
+    return proc, workspace / "install" / "rsvo_ros"
 
 
 def ros_test_env(domain_id: int) -> dict[str, str]:

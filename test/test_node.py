@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -16,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, ros_test_env
+from conftest import REPO_ROOT, colcon_build, ros_test_env
 from scipy.spatial.transform import Rotation
 
 from rsvo_ros.compare import read_ground_truth
@@ -151,16 +150,8 @@ def _path_length(poses: dict) -> float:
 
 def test_colcon_installed_node_runs_the_same_graph(graph, small_bag, tmp_path):
     """`ros2 run rsvo_ros rsvo_node` starts install/rsvo_ros/lib/rsvo_ros/rsvo_node."""
-    ws = tmp_path / "ws"
-    src = ws / "src" / "rsvo_ros"
-    src.parent.mkdir(parents=True)
-    shutil.copytree(REPO_ROOT, src, ignore=shutil.ignore_patterns(
-        ".venv", ".git", "build", "install", "log", "results", "__pycache__", "*.egg-info",
-        ".pytest_cache", ".ruff_cache", "docs"))
-    proc = subprocess.run([str(BIN / "colcon"), "build", "--base-paths", "src"], cwd=ws,
-                          capture_output=True, text=True, timeout=600)
+    proc, install = colcon_build(tmp_path / "ws")
     assert proc.returncode == 0, proc.stderr[-2000:]
-    install = ws / "install" / "rsvo_ros"
     site = next(install.glob("lib/python3*/site-packages"))
     graph.env["PYTHONPATH"] = str(site)
     data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
@@ -203,9 +194,13 @@ def test_bad_images_are_reported_and_good_ones_still_processed(graph):
     assert _wait_file(rec, 60)
     assert node.poll() is None, graph.log("node")  # survived
     data = json.loads(rec.read_text())
-    assert len(data["odom"]) == 16  # one pose per good frame
     diag = data["diagnostics"][-1]
-    assert int(diag["bad"]) == 8 and int(diag["received"]) == frames
+    # every frame is accounted for: a pose, a reported bad frame, or a counted drop (a frame
+    # replaced by a newer one while the worker was busy; rare at 5 Hz, possible under load)
+    assert int(diag["received"]) == frames
+    dropped = int(diag["dropped"])
+    assert len(data["odom"]) + int(diag["bad"]) + dropped == frames
+    assert dropped <= 2 and len(data["odom"]) >= 16 - dropped and int(diag["bad"]) >= 6
     log = graph.log("node")
     for kind in ("unsupported encoding", "shorter than a row", "empty image", "bytes"):
         assert log.count(kind) == 1, (kind, log)  # logged once per kind

@@ -11,7 +11,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-from conftest import REPO_ROOT, ros_test_env
+from conftest import REPO_ROOT, colcon_build, ros_test_env
 
 CONSOLE_SCRIPTS = ("rsvo_node", "rsvo_replay", "rsvo_synth", "rsvo_bench", "rsvo_play")
 
@@ -36,18 +36,8 @@ def test_console_scripts_are_installed():
 
 def test_colcon_build_installs_a_runnable_rsvo_node(tmp_path):
     """What `ros2 run rsvo_ros rsvo_node` would start: install/rsvo_ros/lib/rsvo_ros/rsvo_node."""
-    colcon = shutil.which("colcon") or str(Path(sys.executable).parent / "colcon")
-    src = tmp_path / "src" / "rsvo_ros"
-    src.parent.mkdir(parents=True)
-    shutil.copytree(REPO_ROOT, src, ignore=shutil.ignore_patterns(
-        ".venv", ".git", "build", "install", "log", "results", "__pycache__", "*.egg-info",
-        ".pytest_cache", ".ruff_cache"))
-    proc = subprocess.run(
-        [colcon, "build", "--base-paths", "src", "--event-handlers", "console_direct-"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=600,
-    )
+    proc, install = colcon_build(tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    install = tmp_path / "install" / "rsvo_ros"
     node = install / "lib" / "rsvo_ros" / "rsvo_node"
     assert node.is_file() and os.access(node, os.X_OK)
     index = install / "share" / "ament_index" / "resource_index" / "packages"

@@ -38,6 +38,7 @@ def main():
         info.width, info.height = cfg.width, cfg.height
         info.k = [float(x) for x in renderer.K.ravel()]
         pub_info.publish(info)
+        time.sleep(0.02)  # the camera info first, as a driver would
         img = Image()
         img.header.stamp = info.header.stamp
         img.header.frame_id = "camera_optical_frame"
@@ -57,7 +58,7 @@ def main():
         else:
             good += 1
         pub_img.publish(img)
-        time.sleep(0.1)
+        time.sleep(0.18)  # ~5 Hz
     time.sleep(1.0)
     print(f"sent {good} good frames", flush=True)
     node.destroy_node()
