@@ -99,6 +99,7 @@ class RsvoNode(Node):
         self._validate()
         self._lock = threading.Lock()
         self._pending: tuple | None = None
+        self._waiting: tuple | None = None  # the newest image that came before camera info
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._camera: tuple | None = None
@@ -181,6 +182,9 @@ class RsvoNode(Node):
         if self.pipeline is None:  # build it now, not on the first image (keeps that one fast)
             with self._lock:
                 self._ensure_pipeline()
+                if self._waiting is not None and self._pending is None:
+                    self._pending, self._waiting = self._waiting, None
+                    self._wake.set()
 
     def _on_image(self, msg: Image) -> None:
         self._recv_times.append(time.monotonic())
@@ -236,7 +240,12 @@ class RsvoNode(Node):
 
     def _process(self, msg: Image, t_recv: float) -> None:
         if self._camera is None:
-            self._bad(f"no camera info on {self.p['camera_info_topic']} yet")
+            # keep the newest image until the camera info arrives (drivers and bags often send
+            # an image just before its camera info); an older waiting one cannot be used
+            with self._lock:
+                if self._waiting is not None:
+                    self._bad(f"no camera info on {self.p['camera_info_topic']} yet")
+                self._waiting = (msg, t_recv)
             return
         try:
             gray = to_gray(msg.data, msg.encoding, msg.height, msg.width, msg.step)
