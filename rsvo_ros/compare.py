@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rsvo_ros import bagio
-from rsvo_ros.replay import accuracy
+from rsvo_ros.replay import accuracy, sim3_aligned_positions
 
 
 def read_tum(path: Path) -> dict[int, np.ndarray]:
@@ -68,25 +68,17 @@ def main(argv: list[str] | None = None) -> int:
               f"(Sim(3)), RPE {acc['rpe_trans_m']['rmse']:.3f} m / "
               f"{acc['rpe_rot_deg']['rmse']:.2f} deg per frame")
     if args.plot and rows:
-        import copy
-
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-        from evo.core import sync
-
-        from rsvo_ros.replay import _evo_traj
 
         fig, ax = plt.subplots(figsize=(7, 6))
         g = np.array([gt[s][:3, 3] for s in sorted(gt)])
         ax.plot(g[:, 0], g[:, 2], "k-", lw=2, label="ground truth")
         for (name, est, acc), color in zip(rows, ("tab:red", "tab:blue", "tab:green"),
                                            strict=False):
-            ref, traj = sync.associate_trajectories(_evo_traj(gt), _evo_traj(est), max_diff=1e-3)
-            al = copy.deepcopy(traj)
-            al.align(ref, correct_scale=True)
-            xyz = al.positions_xyz
+            _, xyz = sim3_aligned_positions(gt, est)
             ax.plot(xyz[:, 0], xyz[:, 2], "-", color=color,
                     label=f"{name} (ATE {acc['ate_m']['rmse']:.3f} m)")
         ax.set_aspect("equal", adjustable="datalim")

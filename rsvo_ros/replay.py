@@ -250,6 +250,17 @@ def _evo_traj(poses: dict[int, np.ndarray]):
     return PoseTrajectory3D(poses_se3=[poses[s] for s in stamps], timestamps=stamps / 1e9)
 
 
+def sim3_aligned_positions(gt: dict[int, np.ndarray],
+                           est: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (M, 3) of the ground truth and of the estimate after evo's Sim(3) (Umeyama)
+    alignment, on the stamps they share."""
+    from evo.core import sync
+
+    ref, traj = sync.associate_trajectories(_evo_traj(gt), _evo_traj(est), max_diff=1e-3)
+    traj.align(ref, correct_scale=True)
+    return ref.positions_xyz, traj.positions_xyz
+
+
 def accuracy(gt: dict[int, np.ndarray], est: dict[int, np.ndarray]) -> dict:
     """ATE (after Sim(3) alignment) and RPE (one frame, aligned) with evo."""
     import copy
@@ -284,15 +295,7 @@ def plot_trajectory(path: Path, est: dict, gt: dict, frames: list, model: str) -
         xyz = np.array([est[s][:3, 3] for s in sorted(est)])
         label = f"estimate ({model})"
         if gt and len(est) >= 3:
-            import copy
-
-            from evo.core import sync
-
-            ref, traj = sync.associate_trajectories(_evo_traj(gt), _evo_traj(est), max_diff=1e-3)
-            aligned = copy.deepcopy(traj)
-            aligned.align(ref, correct_scale=True)
-            xyz = aligned.positions_xyz
-            g = ref.positions_xyz
+            g, xyz = sim3_aligned_positions(gt, est)
             ax.plot(g[:, 0], g[:, 2], "k-", lw=2, label="ground truth")
             label += ", Sim(3)-aligned"
         ax.plot(xyz[:, 0], xyz[:, 2], "-", color="tab:red", lw=1.5, label=label)
