@@ -158,6 +158,56 @@ def pose_from_row(
     return R, t, (w_prev, v_prev, w_curr, v_curr)
 
 
+def project_rs_rows(
+    X_world: np.ndarray,
+    row_pose,
+    K: np.ndarray,
+    height: int | None = None,
+    iterations: int = 50,
+    tol_px: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact rolling-shutter projection by fixed-point iteration on the row.
+
+    ``row_pose(rows)`` gives the camera pose ``T_world_camera`` of image rows (n,) as
+    ``R`` (n, 3, 3), ``p`` (n, 3). Finds ``r`` with ``row(project(X, pose(r))) = r``.
+
+    Args:
+        X_world: (N, 3) points.
+        K: (3, 3) intrinsics.
+        height: optional image height; rows are clipped to [0, height-1] during the iteration
+            so points far outside the image do not diverge, and points outside are nan.
+
+    Returns:
+        ``pts`` (N, 2) pixel coordinates (nan where behind the camera, outside the rows or not
+        converged) and ``depth`` (N,) the depth in the row's camera frame.
+    """
+    X_world = np.asarray(X_world, float)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    R0, p0 = row_pose(np.zeros(1))
+    X_r = (X_world - p0[0]) @ R0[0]  # the row-0 camera frame: R^T (X - p)
+    z = X_r[:, 2]
+    rows = np.where(z > 1e-9, fy * X_r[:, 1] / np.where(z > 1e-9, z, 1.0) + cy, 0.0)
+    converged = np.zeros(len(X_world), dtype=bool)
+    for _ in range(iterations):
+        if height is not None:
+            rows = np.clip(rows, 0.0, height - 1.0)
+        R_r, p_r = row_pose(rows)
+        X_r = np.einsum("nji,nj->ni", R_r, X_world - p_r)  # R_r^T (X - p_r)
+        z = X_r[:, 2]
+        new_rows = fy * X_r[:, 1] / np.where(z > 1e-9, z, 1.0) + cy
+        converged = np.abs(new_rows - rows) < tol_px
+        rows = new_rows
+        if np.all(converged | (z <= 1e-9)):
+            break
+    safe_z = np.where(z > 1e-9, z, 1.0)
+    pts = np.stack([fx * X_r[:, 0] / safe_z + cx, fy * X_r[:, 1] / safe_z + cy], axis=1)
+    bad = (z <= 1e-9) | ~converged
+    if height is not None:
+        bad |= (pts[:, 1] < 0) | (pts[:, 1] > height - 1)
+    pts[bad] = np.nan
+    return pts, z
+
+
 def project_rs(
     X_world: np.ndarray,
     R_world_cam: np.ndarray,
@@ -170,45 +220,12 @@ def project_rs(
     iterations: int = 30,
     tol_px: float = 1e-6,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Exact rolling-shutter projection by fixed-point iteration on the row.
+    """:func:`project_rs_rows` for a camera whose row-0 pose is ``(R_world_cam,
+    p_world_cam)`` and whose row ``r`` sees the world from ``X_row0 = Exp(r*tau*w) X_row_r +
+    r*tau*v`` (CONTRACTS.md)."""
 
-    The camera pose at row 0 is ``(R_world_cam, p_world_cam)``; row ``r`` sees the world from
-    ``X_row0 = Exp(r*tau*w) X_row_r + r*tau*v``. Finds ``r`` with ``row(project(X, pose(r))) = r``.
+    def row_pose(rows):
+        R_0r, t_0r = rs_row_pose(rows, line_delay, w, v)
+        return R_world_cam @ R_0r, p_world_cam + t_0r @ R_world_cam.T
 
-    Args:
-        X_world: (N, 3) points.
-        K: (3, 3) intrinsics.
-        height: optional image height; rows are clipped to [0, height-1] during the iteration
-            so points far outside the image do not diverge.
-
-    Returns:
-        ``pts`` (N, 2) pixel coordinates (nan where behind the camera or not converged) and
-        ``depth`` (N,) the depth in the row's camera frame.
-    """
-    X_cam0 = (np.asarray(X_world, float) - p_world_cam) @ R_world_cam  # R^T (X - p)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    z0 = X_cam0[:, 2]
-    rows = np.where(z0 > 1e-9, fy * X_cam0[:, 1] / np.where(z0 > 1e-9, z0, 1.0) + cy, 0.0)
-    converged = np.zeros(len(X_cam0), dtype=bool)
-    X_r = X_cam0
-    for _ in range(iterations):
-        if height is not None:
-            rows = np.clip(rows, 0.0, height - 1.0)
-        R_r, t_r = rs_row_pose(rows, line_delay, w, v)
-        # X_row_r = R_r^T (X_row0 - t_r)
-        X_r = np.einsum("nji,nj->ni", R_r, X_cam0 - t_r)
-        z = X_r[:, 2]
-        safe_z = np.where(z > 1e-9, z, 1.0)
-        new_rows = fy * X_r[:, 1] / safe_z + cy
-        converged = np.abs(new_rows - rows) < tol_px
-        rows = new_rows
-        if np.all(converged | (z <= 1e-9)):
-            break
-    z = X_r[:, 2]
-    safe_z = np.where(z > 1e-9, z, 1.0)
-    pts = np.stack([fx * X_r[:, 0] / safe_z + cx, fy * X_r[:, 1] / safe_z + cy], axis=1)
-    bad = (z <= 1e-9) | ~converged
-    if height is not None:
-        bad |= (pts[:, 1] < 0) | (pts[:, 1] > height - 1)
-    pts[bad] = np.nan
-    return pts, z
+    return project_rs_rows(X_world, row_pose, K, height, iterations, tol_px)

@@ -137,7 +137,7 @@ class OdometryPipeline:
                           num_tracks=self.tracker.num_tracks)
         n = len(pair.ids)
         if n < self.options.min_tracks:
-            self._lose_track()
+            self._hold()  # the tracker has already re-detected corners on this frame
             return result("held", f"lost tracking ({n} tracks): re-initialised",
                           num_tracks=self.tracker.num_tracks)
         pts_prev = undistort_points(pair.pts_prev, self.K, self.D)
@@ -150,7 +150,7 @@ class OdometryPipeline:
                 rows_prev=pair.pts_prev[:, 1], rows_curr=pair.pts_curr[:, 1],
             )  # fmt: skip
         except ValueError as exc:  # e.g. all tracks collapsed onto one point
-            self._lose_track()
+            self._hold()
             return result("held", f"estimation refused the pair: {exc}", num_tracks=n)
         if not rel.ok:
             self._hold()
@@ -222,6 +222,3 @@ class OdometryPipeline:
         self.covariance = self.covariance + grow * max(self._last_scale, 1e-3) ** 2
         self._prev_depths = {}
 
-    def _lose_track(self) -> None:
-        """Hold the pose; the tracker has already re-detected corners on this frame."""
-        self._hold()

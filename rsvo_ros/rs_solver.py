@@ -182,23 +182,27 @@ def levenberg_marquardt(
     return state, cost, it
 
 
-def cheirality_fraction(state: RSBatch, corr: Correspondences, mask: np.ndarray) -> np.ndarray:
-    """Fraction (B,) of the (B, N) ``mask``'s points whose depths agree in sign in both frames
-    (either sign: ``(t, v)`` and ``-(t, v)`` fit equally, see :func:`fix_sign`)."""
+def _depth_sign_counts(state: RSBatch, corr: Correspondences,
+                       mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(B,) counts of the (B, N) ``mask``'s points in front of / behind both cameras."""
     lam_p, lam_c = rs_depths(state, corr)
     front = np.count_nonzero(mask & (lam_p > 0) & (lam_c > 0), axis=1)
     behind = np.count_nonzero(mask & (lam_p < 0) & (lam_c < 0), axis=1)
+    return front, behind
+
+
+def cheirality_fraction(state: RSBatch, corr: Correspondences, mask: np.ndarray) -> np.ndarray:
+    """Fraction (B,) of the (B, N) ``mask``'s points whose depths agree in sign in both frames
+    (either sign: ``(t, v)`` and ``-(t, v)`` fit equally, see :func:`fix_sign`)."""
+    front, behind = _depth_sign_counts(state, corr, mask)
     return np.maximum(front, behind) / np.maximum(mask.sum(axis=1), 1)
 
 
 def fix_sign(state: RSBatch, corr: Correspondences, mask: np.ndarray) -> RSBatch:
     """Cheirality: ``E_i -> -E_i`` under ``(t, v_p, v_c) -> -(t, v_p, v_c)``; keep the sign
     that puts most of the (B, N) ``mask``'s points in front of both cameras."""
-    lam_p, lam_c = rs_depths(state, corr)
-    front = np.count_nonzero(mask & (lam_p > 0) & (lam_c > 0), axis=1)
-    behind = np.count_nonzero(mask & (lam_p < 0) & (lam_c < 0), axis=1)
-    flip = behind > front
-    sign = np.where(flip, -1.0, 1.0)
+    front, behind = _depth_sign_counts(state, corr, mask)
+    sign = np.where(behind > front, -1.0, 1.0)
     vel = state.vel.copy()
     vel[:, 3:6] *= sign[:, None]
     vel[:, 9:12] *= sign[:, None]

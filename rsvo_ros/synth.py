@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from rsvo_ros import paper_scene
-from rsvo_ros.geometry import so3_exp, so3_log
+from rsvo_ros.geometry import project_rs_rows, so3_exp, so3_log
 
 MOTIONS = ("paper", "handheld", "vehicle")
 FRAME_RATE_HZ = {"paper": paper_scene.FRAME_RATE_HZ, "handheld": 30.0, "vehicle": 30.0}
@@ -380,31 +380,7 @@ def render_sequence(config: SynthConfig) -> list[Frame]:
 
 def project_points(X_world: np.ndarray, row_pose: RowPoseFn, K: np.ndarray, height: int,
                    iterations: int = 50, tol_px: float = 1e-6) -> np.ndarray:
-    """Exact RS projection of (N, 3) world points through a frame's per-row poses.
-
-    Fixed-point iteration on the row: ``r <- row(project(X, pose(r)))``. Returns (N, 2) pixels,
-    nan where a point is behind the camera, outside the rows, or the iteration did not settle.
-    """
-    X_world = np.asarray(X_world, float)
-    R0, p0 = row_pose(np.zeros(1))
-    Xc = (X_world - p0[0]) @ R0[0]
-    z = Xc[:, 2]
-    rows = np.where(z > 1e-9, K[1, 1] * Xc[:, 1] / np.where(z > 1e-9, z, 1) + K[1, 2], 0.0)
-    done = np.zeros(len(X_world), bool)
-    pts = np.full((len(X_world), 2), np.nan)
-    for _ in range(iterations):
-        rows = np.clip(rows, 0.0, height - 1.0)
-        R, p = row_pose(rows)
-        Xr = np.einsum("nji,nj->ni", R, X_world - p)
-        z = Xr[:, 2]
-        zs = np.where(z > 1e-9, z, 1.0)
-        uv = Xr[:, :2] / zs[:, None] * [K[0, 0], K[1, 1]] + K[:2, 2]
-        done = (np.abs(uv[:, 1] - rows) < tol_px) & (z > 1e-9)
-        rows = uv[:, 1]
-        pts = uv
-        if done.all():
-            break
-    pts = pts.copy()
-    bad = ~done | (pts[:, 1] < 0) | (pts[:, 1] > height - 1)
-    pts[bad] = np.nan
-    return pts
+    """Exact RS projection of (N, 3) world points through a frame's per-row poses
+    (:func:`rsvo_ros.geometry.project_rs_rows`): (N, 2) pixels, nan where a point is behind the
+    camera, outside the rows, or the fixed-point iteration on the row did not settle."""
+    return project_rs_rows(X_world, row_pose, K, height, iterations, tol_px)[0]
