@@ -164,7 +164,7 @@ def project_rs_rows(
     K: np.ndarray,
     height: int | None = None,
     iterations: int = 50,
-    tol_px: float = 1e-6,
+    tol_px: float = 1e-10,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exact rolling-shutter projection by fixed-point iteration on the row.
 
@@ -188,17 +188,23 @@ def project_rs_rows(
     z = X_r[:, 2]
     rows = np.where(z > 1e-9, fy * X_r[:, 1] / np.where(z > 1e-9, z, 1.0) + cy, 0.0)
     converged = np.zeros(len(X_world), dtype=bool)
+    active = np.flatnonzero(z > 1e-9)  # only points still moving are iterated
     for _ in range(iterations):
-        if height is not None:
-            rows = np.clip(rows, 0.0, height - 1.0)
-        R_r, p_r = row_pose(rows)
-        X_r = np.einsum("nji,nj->ni", R_r, X_world - p_r)  # R_r^T (X - p_r)
-        z = X_r[:, 2]
-        new_rows = fy * X_r[:, 1] / np.where(z > 1e-9, z, 1.0) + cy
-        converged = np.abs(new_rows - rows) < tol_px
-        rows = new_rows
-        if np.all(converged | (z <= 1e-9)):
+        if not len(active):
             break
+        r = rows[active]
+        if height is not None:
+            r = np.clip(r, 0.0, height - 1.0)
+        R_r, p_r = row_pose(r)
+        X_a = np.einsum("nji,nj->ni", R_r, X_world[active] - p_r)  # R_r^T (X - p_r)
+        X_r[active] = X_a
+        z_a = X_a[:, 2]
+        new_rows = fy * X_a[:, 1] / np.where(z_a > 1e-9, z_a, 1.0) + cy
+        done = np.abs(new_rows - r) < tol_px
+        rows[active] = new_rows
+        converged[active] = done
+        active = active[~done & (z_a > 1e-9)]
+    z = X_r[:, 2]
     safe_z = np.where(z > 1e-9, z, 1.0)
     pts = np.stack([fx * X_r[:, 0] / safe_z + cx, fy * X_r[:, 1] / safe_z + cy], axis=1)
     bad = (z <= 1e-9) | ~converged
@@ -218,7 +224,7 @@ def project_rs(
     v: np.ndarray,
     height: int | None = None,
     iterations: int = 30,
-    tol_px: float = 1e-6,
+    tol_px: float = 1e-10,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`project_rs_rows` for a camera whose row-0 pose is ``(R_world_cam,
     p_world_cam)`` and whose row ``r`` sees the world from ``X_row0 = Exp(r*tau*w) X_row_r +

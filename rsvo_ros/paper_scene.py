@@ -15,6 +15,7 @@ from rsvo_ros.geometry import pose_at_row, project_rs, so3_exp
 
 # Paper, Sec. 7.1.
 IMAGE_WIDTH, IMAGE_HEIGHT = 1280, 720
+IMAGE_SIZE = np.array([IMAGE_WIDTH, IMAGE_HEIGHT])
 FOCAL_PX = 1000.0  # the paper's 5 mm lens with an assumed 5 um pixel pitch
 LINE_DELAY = 50e-6  # tau, s per row
 FRAME_RATE_HZ = 5.0
@@ -164,6 +165,9 @@ class PaperScene:
         d0 = (self.points - p0) @ R0
         d1 = (self.points - p1) @ R1
         near = (d0[:, 2] > 0.5) & (d1[:, 2] > 0.5) & (d0[:, 2] < 60) & (d1[:, 2] < 60)
+        for d in (d0, d1):  # and whose row-0 projection is within half an image of the image
+            u = d[:, :2] / np.maximum(d[:, 2:3], 0.5) * self.K[[0, 1], [0, 1]] + self.K[:2, 2]
+            near &= np.all((u > -0.5 * IMAGE_SIZE) & (u < 1.5 * IMAGE_SIZE), axis=1)
         X = self.points[near]
         pts0, _ = project_rs(X, R0, p0, self.K, self.line_delay, w_p, v_p, IMAGE_HEIGHT)
         pts1, _ = project_rs(X, R1, p1, self.K, self.line_delay, w_c, v_c, IMAGE_HEIGHT)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rsvo_ros import rs_kernels
 from rsvo_ros.rs_model import (
     NUM_PARAMS,
     Correspondences,
@@ -81,30 +82,27 @@ def cauchy_cost(e: np.ndarray, scale: float | None) -> np.ndarray:
     return np.sum(scale**2 * np.log1p((e / scale) ** 2), axis=-1)
 
 
-def _rotation_angle(R: np.ndarray) -> np.ndarray:
-    return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
+def residuals(state: RSBatch, corr: Correspondences) -> np.ndarray:
+    """(B, N) Sampson errors (px) of every hypothesis on every correspondence (compiled
+    :func:`rsvo_ros.rs_kernels.residuals_batch`; equal to
+    :func:`rsvo_ros.rs_model.sampson_residuals`)."""
+    return rs_kernels.residuals_batch(
+        np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
+        np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
+        corr.s_curr, float(corr.focal),
+    )  # fmt: skip
 
 
 @dataclass
 class SearchLimits:
-    """What a step may not do: the physical bounds and the distance from the start."""
+    """What a step may not do: the physical bounds (``|w| <= w_max``, ``|v| <= v_max``) and
+    the rotation away from ``anchor_R`` (B, 3, 3); plus, always, the trust region of one step
+    (``MAX_STEP_ROTATION_RAD``, ``MAX_STEP_TRANSLATION_RAD``)."""
 
     w_max: float
     v_max: float
     anchor_R: np.ndarray | None = None  # (B, 3, 3)
     max_rotation_change: float = np.inf
-
-    def valid(self, cand: RSBatch, delta: np.ndarray) -> np.ndarray:
-        ok = np.linalg.norm(delta[:, 0:3], axis=1) <= MAX_STEP_ROTATION_RAD
-        ok &= np.linalg.norm(delta[:, 3:5], axis=1) <= MAX_STEP_TRANSLATION_RAD
-        v = cand.vel
-        for sl, lim in ((slice(0, 3), self.w_max), (slice(3, 6), self.v_max),
-                        (slice(6, 9), self.w_max), (slice(9, 12), self.v_max)):  # fmt: skip
-            ok &= np.linalg.norm(v[:, sl], axis=1) <= lim
-        if self.anchor_R is not None and np.isfinite(self.max_rotation_change):
-            rel = np.swapaxes(self.anchor_R, -1, -2) @ cand.R
-            ok &= _rotation_angle(rel) <= self.max_rotation_change
-        return ok
 
 
 def levenberg_marquardt(
@@ -125,61 +123,30 @@ def levenberg_marquardt(
     ``g = J^T W e``, IRLS weights ``W`` of the robust loss, plus the zero-mean velocity prior
     ``sum((p * vel)^2)``. ``basis`` (17, k) restricts the steps to a subspace; ``limits``
     rejects steps like a cost increase. Each hypothesis ``b`` uses all correspondences or the
-    rows ``idx[b]``. Returns the states, their costs (B,) and the iterations run.
+    rows ``idx[b]``. Runs in the compiled kernel :func:`rsvo_ros.rs_kernels.lm_batch`.
+    Returns the states, their costs (B,) and the total iterations over the batch.
     """
-    p2 = None if prior_inv_sigma is None else np.asarray(prior_inv_sigma, float) ** 2
-
-    def total_cost(e, st):
-        c = cauchy_cost(e, robust_scale)
-        if p2 is not None:
-            c = c + (st.vel**2) @ p2
-        return c
-
-    e, J = sampson_residuals(state, corr, jacobian=True, idx=idx)
-    cost = total_cost(e, state)
-    lam = np.full(len(state), lambda_init)
-    it = 0
-    for it in range(1, iterations + 1):  # noqa: B007
-        w = np.ones_like(e) if robust_scale is None else 1.0 / (1.0 + (e / robust_scale) ** 2)
-        Jw = J * w[..., None]
-        H = np.einsum("bni,bnj->bij", Jw, J)
-        g = np.einsum("bni,bn->bi", Jw, e)
-        if p2 is not None:
-            H[:, VEL, VEL] += np.diag(p2)
-            g[:, VEL] += p2 * state.vel
-        if basis is not None:
-            H = basis.T @ H @ basis
-            g = g @ basis
-        d = np.einsum("bii->bi", H)
-        d = np.maximum(d, 1e-12 * np.maximum(d.max(axis=1, keepdims=True), 1e-300))
-        A = H + (lam[:, None] * d)[:, :, None] * np.eye(H.shape[-1])
-        try:
-            delta = np.linalg.solve(A, -g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            delta = np.stack(
-                [np.linalg.lstsq(Ab, -gb, rcond=None)[0] for Ab, gb in zip(A, g, strict=True)]
-            )
-        if basis is not None:
-            delta = delta @ basis.T
-        delta = np.where(np.isfinite(delta), delta, 0.0)
-        cand = state.retract(delta)
-        e_new, _ = sampson_residuals(cand, corr, idx=idx)
-        cost_new = total_cost(e_new, cand)
-        accept = np.isfinite(cost_new) & (cost_new < cost)
-        if limits is not None:
-            accept &= limits.valid(cand, delta)
-        rel = np.where(accept, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)
-        lam = np.where(accept, np.maximum(lam / 3.0, 1e-12), lam * 4.0)
-        if not accept.any():
-            if np.all(lam > 1e8):
-                break
-            continue
-        state = state.where(accept, cand)
-        cost = np.where(accept, cost_new, cost)
-        if np.all((accept & (rel < rel_tol)) | (lam > 1e8)):
-            break
-        e, J = sampson_residuals(state, corr, jacobian=True, idx=idx)
-    return state, cost, it
+    B = len(state)
+    if idx is None:
+        idx = np.broadcast_to(np.arange(len(corr)), (B, len(corr)))
+    idx = np.ascontiguousarray(idx, dtype=np.int64)
+    p2 = np.zeros(12) if prior_inv_sigma is None else np.asarray(prior_inv_sigma, float) ** 2
+    basis = np.eye(NUM_PARAMS) if basis is None else np.ascontiguousarray(basis, float)
+    bounds = np.array([MAX_STEP_ROTATION_RAD, MAX_STEP_TRANSLATION_RAD, np.inf, np.inf, np.inf])
+    anchor = state.R
+    if limits is not None:
+        bounds[2:4] = limits.w_max, limits.v_max
+        if limits.anchor_R is not None:
+            bounds[4] = limits.max_rotation_change
+            anchor = np.broadcast_to(limits.anchor_R, state.R.shape)
+    R, t, vel, cost, iters = rs_kernels.lm_batch(
+        np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
+        np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
+        corr.s_curr, float(corr.focal), idx, int(iterations), float(lambda_init),
+        float(rel_tol), 0.0 if robust_scale is None else float(robust_scale), p2, basis, bounds,
+        np.ascontiguousarray(anchor, float),
+    )  # fmt: skip
+    return RSBatch(R, t, vel), cost, int(iters.sum())
 
 
 def _depth_sign_counts(state: RSBatch, corr: Correspondences,
@@ -231,11 +198,11 @@ def search_paper(corr: Correspondences, start: RSBatch, iterations: int, sample_
     hyps = start.take(np.zeros(iterations, dtype=int))
     hyps, _, it = levenberg_marquardt(hyps, corr, lm.sample_iterations, idx=idx,
                                       lambda_init=lm.lambda_init, limits=limits)
-    e, _ = sampson_residuals(hyps, corr)
+    e = residuals(hyps, corr)
     counts = np.count_nonzero(np.abs(e) < threshold_px, axis=1)
     best = hyps.take(int(np.argmax(counts)))
     inl = np.abs(e[int(np.argmax(counts))]) < threshold_px
-    total = it * iterations
+    total = it
     if inl.sum() >= NUM_PARAMS + 3:
         best, _, it2 = levenberg_marquardt(best, corr.subset(inl), lm.max_iterations,
                                            lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
@@ -274,7 +241,7 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
     hyps, _, it2 = levenberg_marquardt(hyps, corr, lm.sample_full_iterations, idx=idx,
                                        lambda_init=lm.lambda_init, robust_scale=scale,
                                        prior_inv_sigma=prior_s, limits=limits)
-    e, _ = sampson_residuals(hyps, corr)
+    e = residuals(hyps, corr)
     cost = cauchy_cost(e, scale)
     if prior is not None:
         cost = cost + (hyps.vel**2) @ prior**2
@@ -294,7 +261,7 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
     for _ in range(lm.polish_rounds):
         # The prior matters in proportion to the noise (MAP: prior term ~ sigma^2): scale it by
         # the noise level the fit shows, so exact data is fitted exactly.
-        e, _ = sampson_residuals(best, corr)
+        e = residuals(best, corr)
         inl = np.abs(e[0]) < threshold_px
         if inl.sum() < NUM_PARAMS + 3:
             break
@@ -307,7 +274,7 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
                                           lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
                                           prior_inv_sigma=prior_i, limits=final_limits)
         it4 += it
-    total = (it1 + it2) * len(hyps) + it3 + it4
+    total = it1 + it2 + it3 + it4
     return SearchResult(best, total, len(hyps))
 
 

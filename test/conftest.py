@@ -18,6 +18,7 @@ if str(REPO_ROOT) not in sys.path:  # the checkout is what we test
 TOL = {
     "jacobian_rel": 1e-5,  # analytic vs central finite differences, relative to column scale
     "gt_residual_px": 1e-8,  # Sampson error of the ground-truth parameters, noise-free
+    "kernel_vs_numpy": 1e-9,  # compiled kernels vs the numpy model, relative to the scale
     "roundtrip": 1e-9,  # exp/log, row re-expression round trips
     "rs_projection_px": 1e-6,  # fixed-point RS projection: row consistency
     "noise_free_rot_deg": 0.05,  # RS estimator on exact RS correspondences it converges on
