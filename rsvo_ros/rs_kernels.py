@@ -129,12 +129,14 @@ def _tangent(t):
 
 
 @nb.njit(**JIT, inline="always")
-def _point(R, t, Bt, V, xp, xc, sp, sc, focal, J, want_jacobian):
+def _point(R, t, Bt, V, xp, xc, sp, sc, cam, J, want_jacobian):
     """Sampson error (px) of one correspondence; fills ``J`` (17,) when ``want_jacobian``.
 
     The same algebra as :func:`rsvo_ros.rs_model.sampson_residuals`, one point at a time.
-    ``R`` rows, ``t``, ``Bt`` (tangent basis) and ``V = (w_p, v_p, w_c, v_c)`` are tuples.
+    ``R`` rows, ``t``, ``Bt`` (tangent basis), ``V = (w_p, v_p, w_c, v_c)`` and
+    ``cam = (focal, ds_dy)`` are tuples.
     """
+    focal, kappa = cam
     wp, vp, wc, vc = V
     Rp, Jrp = _exp_jr(_scale(sp, wp))
     Rc, Jrc = _exp_jr(_scale(sc, wc))
@@ -149,41 +151,67 @@ def _point(R, t, Bt, V, xp, xc, sp, sc, focal, J, want_jacobian):
     Ex = _mtv(Rc, g)
     Rth = _mtv(R, h)
     ETx = _mtv(Rp, Rth)
-    d2 = Ex[0] * Ex[0] + Ex[1] * Ex[1] + ETx[0] * ETx[0] + ETx[1] * ETx[1]
+    # E_i moves with the rows: dn/ds_c, dn/ds_p
+    m_p = _cross(wp, xp)
+    m_c = _cross(wc, xc)
+    mp2 = _mv(Rp, m_p)
+    da = _mv(R, mp2)
+    db = _mv(Rc, m_c)
+    Rv = _mv(R, vp)
+    ab = _cross(a, b)
+    dn_c = _dot(db, g) - _dot(vc, ab)  # b.(a x v_c) = -v_c.(a x b)
+    dn_p = _dot(da, h) + _dot(Rv, ab)
+    u = (Ex[0], Ex[1] + kappa * dn_c, 0.0)
+    z = (ETx[0], ETx[1] + kappa * dn_p, 0.0)
+    d2 = u[0] * u[0] + u[1] * u[1] + z[0] * z[0] + z[1] * z[1]
     inv_d = 1.0 / np.sqrt(max(d2, 1e-300))
     e = focal * n * inv_d
     if not want_jacobian:
         return e
-    u = (Ex[0], Ex[1], 0.0)
-    z = (ETx[0], ETx[1], 0.0)
     U = _mv(Rc, u)
     A = _mm(R, Rp)
     Z = _mv(A, z)
     k = focal * n * inv_d**3
     f = focal * inv_d
-    c_a = _add(_scale(f, h), _scale(-k, _cross(U, T)))
-    c_b = _add(_scale(f, g), _scale(-k, _cross(T, Z)))
-    c_T = _add(_scale(f, _cross(a, b)), _scale(-k, _add(_cross(a, U), _cross(Z, b))))
+    alpha = -k * kappa * u[1]
+    beta = -k * kappa * z[1]
+    c_a = _add(_add(_scale(f, h), _scale(-k, _cross(U, T))),
+               _add(_scale(alpha, _add(_cross(db, T), _cross(vc, b))),
+                    _scale(beta, _cross(b, Rv))))  # fmt: skip
+    c_b = _add(_add(_scale(f, g), _scale(-k, _cross(T, Z))),
+               _add(_scale(alpha, _cross(a, vc)),
+                    _scale(beta, _add(_cross(T, da), _cross(Rv, a)))))  # fmt: skip
+    c_T = _add(_add(_scale(f, ab), _scale(-k, _add(_cross(a, U), _cross(Z, b)))),
+               _add(_scale(alpha, _cross(a, db)), _scale(beta, _cross(da, b))))  # fmt: skip
     c_Ex = _scale(-k, u)
     c_ETx = _scale(-k, z)
+    c_db = _scale(alpha, g)
+    c_da = _scale(beta, h)
+    c_Rv = _scale(beta, ab)
+    c_vc = _scale(-alpha, ab)  # alpha (b x a)
     RtcT = _mtv(R, c_T)
+    Rtc_da = _mtv(R, c_da)
+    Rtc_Rv = _mtv(R, c_Rv)
     j = _add(_add(_cross(q, _mtv(R, c_a)), _cross(tp, RtcT)), _cross(_mv(Rp, c_ETx), Rth))
+    j = _add(j, _add(_cross(mp2, Rtc_da), _cross(vp, Rtc_Rv)))
     J[0], J[1], J[2] = j
     J[3] = _dot(c_T, Bt[0])
     J[4] = _dot(c_T, Bt[1])
     y_p = _mtv(A, c_a)
-    j = _scale(sp, _mtv(Jrp, _add(_cross(xp, y_p), _cross(c_ETx, ETx))))
-    J[5], J[6], J[7] = j
-    J[8], J[9], J[10] = _scale(sp, RtcT)
+    y_da = _mtv(A, c_da)
+    j = _scale(sp, _mtv(Jrp, _add(_add(_cross(xp, y_p), _cross(c_ETx, ETx)), _cross(m_p, y_da))))
+    J[5], J[6], J[7] = _add(j, _cross(xp, y_da))
+    J[8], J[9], J[10] = _add(_scale(sp, RtcT), Rtc_Rv)
     y_c = _mtv(Rc, c_b)
-    j = _scale(sc, _mtv(Jrc, _add(_cross(xc, y_c), _cross(c_Ex, Ex))))
-    J[11], J[12], J[13] = j
-    J[14], J[15], J[16] = _scale(-sc, c_T)
+    y_db = _mtv(Rc, c_db)
+    j = _scale(sc, _mtv(Jrc, _add(_add(_cross(xc, y_c), _cross(c_Ex, Ex)), _cross(m_c, y_db))))
+    J[11], J[12], J[13] = _add(j, _cross(xc, y_db))
+    J[14], J[15], J[16] = _add(_scale(-sc, c_T), c_vc)
     return e
 
 
 @nb.njit(**JIT)
-def residuals_and_jacobian(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal):
+def residuals_and_jacobian(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
     """(N,) Sampson errors and (N, 17) Jacobian of one hypothesis (for tests and callers that
     need them as arrays)."""
     Rr = _rows(R)
@@ -196,7 +224,7 @@ def residuals_and_jacobian(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal):
     for i in range(N):
         xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
         xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-        e[i] = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], focal, J[i], True)
+        e[i] = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, J[i], True)
     return e, J
 
 
@@ -211,7 +239,7 @@ def _loss(e, robust):
 
 
 @nb.njit(**JIT)
-def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, robust, p2):
+def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2):
     Rr = _rows(R)
     tt = (t[0], t[1], t[2])
     Bt = _tangent(tt)
@@ -222,7 +250,7 @@ def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, robust, p2):
         i = idx[m]
         xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
         xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-        e = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], focal, dummy, False)
+        e = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, dummy, False)
         c += _loss(e, robust)
     for j in range(12):
         c += p2[j] * vel[j] * vel[j]
@@ -230,7 +258,7 @@ def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, robust, p2):
 
 
 @nb.njit(**JIT)
-def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, robust, p2, H, g):
+def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2, H, g):
     """Fills ``H = J^T W J + P``, ``g = J^T W e + P vel`` (IRLS weights ``W`` of the Cauchy
     loss, prior ``P = diag(p2)`` on the velocities); returns the cost."""
     Rr = _rows(R)
@@ -245,7 +273,7 @@ def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, rob
         i = idx[m]
         xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
         xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-        e = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], focal, J, True)
+        e = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, J, True)
         c += _loss(e, robust)
         w = 1.0 if robust <= 0.0 else 1.0 / (1.0 + (e / robust) ** 2)
         for r in range(NUM_PARAMS):
@@ -338,7 +366,7 @@ def _within_limits(R, vel, delta, limits, anchor):
 
 
 @nb.njit(**JIT)
-def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, iterations, lam, rel_tol,
+def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam, rel_tol,
             robust, p2, basis, limits, anchor):
     """Marquardt's damped Gauss-Newton ``(H + lambda diag(H)) d = -g`` in the span of
     ``basis`` (17, k); a step that raises the cost or leaves ``limits`` is rejected. Returns
@@ -346,7 +374,7 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, iterations, l
     k = basis.shape[1]
     H = np.empty((NUM_PARAMS, NUM_PARAMS))
     g = np.empty(NUM_PARAMS)
-    cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, robust,
+    cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust,
                              p2, H, g)
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007
@@ -366,7 +394,7 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, iterations, l
                 if not np.isfinite(delta[i]):
                     delta[i] = 0.0
             R_c, t_c, vel_c = _retract(R, t, vel, delta)
-            cost_c = _cost(R_c, t_c, vel_c, x_prev, x_curr, s_prev, s_curr, focal, idx,
+            cost_c = _cost(R_c, t_c, vel_c, x_prev, x_curr, s_prev, s_curr, cam, idx,
                            robust, p2)
             if np.isfinite(cost_c) and cost_c < cost and _within_limits(R_c, vel_c, delta,
                                                                         limits, anchor):
@@ -381,13 +409,13 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, iterations, l
         lam = max(lam / 3.0, 1e-12)
         if rel < rel_tol:
             break
-        cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx,
+        cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx,
                                  robust, p2, H, g)
     return R, t, vel, cost, it
 
 
 @nb.njit(**JIT)
-def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, iterations, lambda_init,
+def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lambda_init,
              rel_tol, robust, p2, basis, limits, anchor):
     """LM for each of B hypotheses on its own correspondences ``idx[b]``.
 
@@ -404,14 +432,14 @@ def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal, idx, iterations, 
     iters = np.empty(B, np.int64)
     for b in range(B):
         Rb, tb, vb, cb, ib = _lm_one(R[b].copy(), t[b].copy(), vel[b].copy(), x_prev, x_curr,
-                                     s_prev, s_curr, focal, idx[b], iterations, lambda_init,
+                                     s_prev, s_curr, cam, idx[b], iterations, lambda_init,
                                      rel_tol, robust, p2, basis, limits, anchor[b])
         R_out[b], t_out[b], vel_out[b], cost[b], iters[b] = Rb, tb, vb, cb, ib
     return R_out, t_out, vel_out, cost, iters
 
 
 @nb.njit(**JIT)
-def residuals_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal):
+def residuals_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
     """(B, N) Sampson errors (px) of B hypotheses on all N correspondences."""
     B = R.shape[0]
     N = x_prev.shape[0]
@@ -425,6 +453,6 @@ def residuals_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, focal):
         for i in range(N):
             xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
             xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-            e[b, i] = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], focal, dummy,
+            e[b, i] = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, dummy,
                              False)
     return e

@@ -124,7 +124,10 @@ class Correspondences:
     """Normalized bearings and row times of N correspondences, ready for the solver.
 
     ``x_prev``, ``x_curr``: (N, 3) ``K^-1 [u, v, 1]``; ``s_prev``, ``s_curr``: (N,) seconds from
-    the reference row; ``focal``: pixels per normalized unit (for pixel-scaled residuals).
+    the reference row; ``focal``: pixels per normalized unit (for pixel-scaled residuals);
+    ``ds_dy``: how a point's row time changes with its normalized ``y`` (``f_y tau``, s), which
+    makes the Sampson error account for ``E_i`` moving with the point's row (0: the paper's
+    constant ``E_i``).
     """
 
     x_prev: np.ndarray
@@ -132,11 +135,11 @@ class Correspondences:
     s_prev: np.ndarray
     s_curr: np.ndarray
     focal: float
+    ds_dy: float = 0.0
 
     def subset(self, idx: np.ndarray) -> Correspondences:
-        return Correspondences(
-            self.x_prev[idx], self.x_curr[idx], self.s_prev[idx], self.s_curr[idx], self.focal
-        )
+        return Correspondences(self.x_prev[idx], self.x_curr[idx], self.s_prev[idx],
+                               self.s_curr[idx], self.focal, self.ds_dy)  # fmt: skip
 
     def __len__(self) -> int:
         return len(self.x_prev)
@@ -166,6 +169,7 @@ def make_correspondences(
         (np.asarray(rows_prev, float) - row_ref) * line_delay,
         (np.asarray(rows_curr, float) - row_ref) * line_delay,
         float(focal),
+        float(K[1, 1] * line_delay),
     )
 
 
@@ -215,54 +219,86 @@ def sampson_residuals(
     Ex = np.einsum("bnji,bnj->bni", Rc, g)  # Rc^T g = E x_p
     Rth = np.einsum("bji,bnj->bni", R, h)  # R^T h
     ETx = np.einsum("bnji,bnj->bni", Rp, Rth)  # Rp^T R^T h = E^T x_c
-    d2 = Ex[..., 0] ** 2 + Ex[..., 1] ** 2 + ETx[..., 0] ** 2 + ETx[..., 1] ** 2
+    # E_i moves with the points' rows: dn/ds_c and dn/ds_p (d/ds Exp(s w) = Exp(s w) [w]x)
+    m_p = _cross(w_p[:, None, :], x_p)  # w_p x x_p
+    m_c = _cross(w_c[:, None, :], x_c)
+    mp2 = np.einsum("bnij,bnj->bni", Rp, m_p)
+    da = np.einsum("bij,bnj->bni", R, mp2)  # da/ds_p = R Rp [w_p]x x_p
+    db = np.einsum("bnij,bnj->bni", Rc, m_c)  # db/ds_c
+    Rv = np.einsum("bij,bj->bi", R, v_p)[:, None, :]  # dT/ds_p
+    vc = v_c[:, None, :]  # -dT/ds_c
+    dn_c = np.einsum("bni,bni->bn", db, g) + np.einsum("bni,bni->bn", b, _cross(a, vc))
+    dn_p = np.einsum("bni,bni->bn", da, h) + np.einsum("bni,bni->bn", Rv, _cross(a, b))
+    kappa = corr.ds_dy
+    # gradient of n with respect to the normalized image coordinates, rows included
+    u = Ex.copy()
+    u[..., 1] += kappa * dn_c
+    u[..., 2] = 0.0
+    z = ETx.copy()
+    z[..., 1] += kappa * dn_p
+    z[..., 2] = 0.0
+    d2 = u[..., 0] ** 2 + u[..., 1] ** 2 + z[..., 0] ** 2 + z[..., 1] ** 2
     inv_d = 1.0 / np.sqrt(np.maximum(d2, 1e-300))
     e = corr.focal * n * inv_d
     if not jacobian:
         return e, None
 
-    # e = f n / sqrt(d2), n = b.(T x a), d2 = |P Ex|^2 + |P ETx|^2 (P: first two components).
-    # Every parameter moves a, b, T and rotates Ex / ETx (through Rc^T, Rp^T, R^T): collect the
-    # gradient of e with respect to those as vectors, then chain to each parameter block.
-    u = Ex.copy()
-    u[..., 2] = 0.0
-    z = ETx.copy()
-    z[..., 2] = 0.0
+    # e = f n / sqrt(d2), n = b.(T x a), d2 = |u|^2 + |z|^2 with u = P Ex + kappa dn_c e_y,
+    # z = P ETx + kappa dn_p e_y (P: first two components).
+    # Every parameter moves a, b, T (and da, db, Rv, v_c) and rotates Ex / ETx (through Rc^T,
+    # Rp^T, R^T): collect the gradient of e with respect to those as vectors, then chain to each
+    # parameter block.
     U = np.einsum("bnij,bnj->bni", Rc, u)
     A = np.einsum("bij,bnjk->bnik", R, Rp)  # R Rp; E^T x_c = A^T h
     Z = np.einsum("bnij,bnj->bni", A, z)
     k = (corr.focal * n * inv_d**3)[..., None]
     f_inv_d = (corr.focal * inv_d)[..., None]
-    c_a = f_inv_d * h - k * _cross(U, T)  # multiplies da
-    c_b = f_inv_d * g - k * _cross(T, Z)  # multiplies db
-    c_T = f_inv_d * _cross(a, b) - k * (_cross(a, U) + _cross(Z, b))  # multiplies dT
+    alpha = -k * kappa * u[..., 1:2]  # multiplies d(dn_c)
+    beta = -k * kappa * z[..., 1:2]  # multiplies d(dn_p)
+    c_a = f_inv_d * h - k * _cross(U, T) + alpha * (_cross(db, T) + _cross(vc, b)) \
+        + beta * _cross(b, Rv)  # multiplies da
+    c_b = f_inv_d * g - k * _cross(T, Z) + alpha * _cross(a, vc) \
+        + beta * (_cross(T, da) + _cross(Rv, a))  # multiplies db
+    c_T = f_inv_d * _cross(a, b) - k * (_cross(a, U) + _cross(Z, b)) \
+        + alpha * _cross(a, db) + beta * _cross(da, b)  # multiplies dT
     c_Ex = -k * u  # multiplies the rotation term of Ex
     c_ETx = -k * z  # multiplies the rotation terms of ETx
+    c_db = alpha * g  # multiplies d(db/ds_c)
+    c_da = beta * h  # multiplies d(da/ds_p)
+    c_Rv = beta * _cross(a, b)  # multiplies d(R v_p)
+    c_vc = alpha * _cross(b, a)  # multiplies dv_c (dn_c's explicit v_c)
     RtcT = np.einsum("bji,bnj->bni", R, c_T)  # R^T c_T
+    Rtc_da = np.einsum("bji,bnj->bni", R, c_da)
+    Rtc_Rv = np.einsum("bji,bnj->bni", R, c_Rv)
 
     J = np.empty(e.shape + (NUM_PARAMS,))
-    # rotation, R <- R Exp(d): da = -R [q]x d, dT = -R [tp]x d, ETx gains Rp^T [R^T h]x d
+    # rotation, R <- R Exp(d): da = -R [q]x d, dT = -R [tp]x d, ETx gains Rp^T [R^T h]x d,
+    # d(da/ds_p) = -R [Rp m_p]x d, d(R v_p) = -R [v_p]x d
     J[..., 0:3] = (
         _cross(q, np.einsum("bji,bnj->bni", R, c_a))
         + _cross(tp, RtcT)
         + _cross(np.einsum("bnij,bnj->bni", Rp, c_ETx), Rth)
+        + _cross(mp2, Rtc_da)
+        + _cross(v_p[:, None, :], Rtc_Rv)
     )
     # translation direction: dT = B d
     J[..., 3:5] = np.einsum("bni,bik->bnk", c_T, tangent_basis(t))
-    # w_prev: dRp = Rp [M_p d]x with M_p = s_p J_r(s_p w_p)
+    # w_prev: dRp = Rp [M_p d]x with M_p = s_p J_r(s_p w_p); d(da/ds_p) also gains A [d]x x_p
     y_p = np.einsum("bnji,bnj->bni", A, c_a)
+    y_da = np.einsum("bnji,bnj->bni", A, c_da)
     J[..., 5:8] = s_p[..., None] * np.einsum(
-        "bnji,bnj->bni", Jr_p, _cross(x_p, y_p) + _cross(c_ETx, ETx)
-    )
-    # v_prev: dT = s_p R d
-    J[..., 8:11] = s_p[..., None] * RtcT
-    # w_curr: dRc = Rc [M_c d]x
+        "bnji,bnj->bni", Jr_p, _cross(x_p, y_p) + _cross(c_ETx, ETx) + _cross(m_p, y_da)
+    ) + _cross(x_p, y_da)
+    # v_prev: dT = s_p R d, d(R v_p) = R d
+    J[..., 8:11] = s_p[..., None] * RtcT + Rtc_Rv
+    # w_curr: dRc = Rc [M_c d]x; d(db/ds_c) also gains Rc [d]x x_c
     y_c = np.einsum("bnji,bnj->bni", Rc, c_b)
+    y_db = np.einsum("bnji,bnj->bni", Rc, c_db)
     J[..., 11:14] = s_c[..., None] * np.einsum(
-        "bnji,bnj->bni", Jr_c, _cross(x_c, y_c) + _cross(c_Ex, Ex)
-    )
-    # v_curr: dT = -s_c d
-    J[..., 14:17] = -s_c[..., None] * c_T
+        "bnji,bnj->bni", Jr_c, _cross(x_c, y_c) + _cross(c_Ex, Ex) + _cross(m_c, y_db)
+    ) + _cross(x_c, y_db)
+    # v_curr: dT = -s_c d, and dn_c's own v_c
+    J[..., 14:17] = -s_c[..., None] * c_T + c_vc
     return e, J
 
 

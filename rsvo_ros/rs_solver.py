@@ -43,8 +43,8 @@ class LMOptions:
     robust_scale_px: float = 2.0  # Cauchy loss scale of the all-points refinement
     max_angular_velocity: float = 5.0  # rad/s (286 deg/s): bound of the search
     max_readout_translation: float = 5.0  # baselines over half the readout: bound
-    prior_rotation_rad: float = 0.1  # prior std of the rotation over half the readout
-    prior_translation: float = 2.0  # prior std of the displacement over half the readout
+    prior_rotation_rad: float = 0.3  # prior std of the rotation over half the readout
+    prior_translation: float = 20.0  # prior std of the displacement over half the readout
     max_rotation_change_rad: float = 0.1  # how far (5.7 deg) a run may rotate from its start
     init_thresholds_px: tuple[float, ...] = (1.0, 8.0)  # extra GS starts (fast mode)
     samples_per_start: int = 8  # fast mode: LM runs on random samples from each GS start
@@ -52,6 +52,7 @@ class LMOptions:
     sample_difference_iterations: int = 6  # fast mode: first with only velocity differences
     sample_full_iterations: int = 6  # fast mode: then all 17 DOF
     polish_rounds: int = 2  # final refinements on the inliers with the noise-scaled prior
+    model_selection_aic: float = 2.0  # GS instead of RS unless the velocities earn this (0: off)
 
 
 def velocity_prior(corr: Correspondences, sigma_rotation_rad: float,
@@ -89,7 +90,7 @@ def residuals(state: RSBatch, corr: Correspondences) -> np.ndarray:
     return rs_kernels.residuals_batch(
         np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
         np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
-        corr.s_curr, float(corr.focal),
+        corr.s_curr, (float(corr.focal), float(corr.ds_dy)),
     )  # fmt: skip
 
 
@@ -142,8 +143,9 @@ def levenberg_marquardt(
     R, t, vel, cost, iters = rs_kernels.lm_batch(
         np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
         np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
-        corr.s_curr, float(corr.focal), idx, int(iterations), float(lambda_init),
-        float(rel_tol), 0.0 if robust_scale is None else float(robust_scale), p2, basis, bounds,
+        corr.s_curr, (float(corr.focal), float(corr.ds_dy)), idx, int(iterations),
+        float(lambda_init), float(rel_tol),
+        0.0 if robust_scale is None else float(robust_scale), p2, basis, bounds,
         np.ascontiguousarray(anchor, float),
     )  # fmt: skip
     return RSBatch(R, t, vel), cost, int(iters.sum())
@@ -257,6 +259,30 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
                                        lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
                                        robust_scale=scale, prior_inv_sigma=prior,
                                        limits=final_limits)
+    best, it4 = _polish(best, corr, threshold_px, lm, prior, final_limits)
+    if lm.model_selection_aic > 0:
+        # Are the velocities supported by the data? The GS model (zero velocities, 5 DOF)
+        # refined the same way; keep the RS fit only if it lowers the cost by more than 12
+        # extra parameters fitting noise would (Akaike: aic * 12 * sigma^2).
+        gs = RSBatch(best.R.copy(), best.t.copy(), np.zeros_like(best.vel))
+        gs, _, it5 = levenberg_marquardt(gs, corr, lm.max_iterations, lambda_init=lm.lambda_init,
+                                         rel_tol=lm.rel_tol, robust_scale=scale,
+                                         basis=np.eye(NUM_PARAMS)[:, :5], limits=final_limits)
+        gs, it6 = _polish(gs, corr, threshold_px, lm, None, final_limits, gs_only=True)
+        e_rs, e_gs = residuals(best, corr)[0], residuals(gs, corr)[0]
+        sigma = 1.4826 * float(np.median(np.abs(e_rs)))
+        gain = float(cauchy_cost(e_gs, scale) - cauchy_cost(e_rs, scale))
+        if gain < lm.model_selection_aic * (NUM_PARAMS - 5) * sigma**2:
+            best = gs
+        it4 += it5 + it6
+    total = it1 + it2 + it3 + it4
+    return SearchResult(best, total, len(hyps))
+
+
+def _polish(best: RSBatch, corr: Correspondences, threshold_px: float, lm: LMOptions,
+            prior: np.ndarray | None, limits: SearchLimits,
+            gs_only: bool = False) -> tuple[RSBatch, int]:
+    """Refinements on the inliers of ``best`` with the prior scaled by the noise."""
     it4 = 0
     for _ in range(lm.polish_rounds):
         # The prior matters in proportion to the noise (MAP: prior term ~ sigma^2): scale it by
@@ -272,10 +298,10 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
             prior_i = prior * np.sqrt(inl.sum() / len(corr)) * noise
         best, _, it = levenberg_marquardt(best, corr.subset(inl), lm.max_iterations,
                                           lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
-                                          prior_inv_sigma=prior_i, limits=final_limits)
+                                          prior_inv_sigma=prior_i, limits=limits,
+                                          basis=np.eye(NUM_PARAMS)[:, :5] if gs_only else None)
         it4 += it
-    total = it1 + it2 + it3 + it4
-    return SearchResult(best, total, len(hyps))
+    return best, it4
 
 
 def pose_covariance(state: RSBatch, corr: Correspondences, gs_only: bool = False) -> np.ndarray:

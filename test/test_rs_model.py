@@ -18,6 +18,7 @@ def _random_problem(rng, n=60, batch=3):
         np.column_stack([0.4 * rng.normal(size=(n, 2)), np.ones(n)]),
         np.column_stack([0.4 * rng.normal(size=(n, 2)), np.ones(n)]),
         rng.uniform(-0.02, 0.02, n), rng.uniform(-0.02, 0.02, n), 1000.0,
+        ds_dy=1000.0 * 50e-6,  # f_y tau: the row-aware Sampson error
     )
     R = np.stack([so3_exp(0.2 * rng.normal(size=3)) for _ in range(batch)])
     vel = rng.normal(size=(batch, 12)) * np.repeat([2.0, 30.0, 2.0, 30.0], 3)
@@ -99,7 +100,7 @@ def test_compiled_kernel_equals_the_numpy_model(rng):
     for b in range(len(state)):
         e_b, J_b = rs_kernels.residuals_and_jacobian(state.R[b], state.t[b], state.vel[b],
                                                      corr.x_prev, corr.x_curr, corr.s_prev,
-                                                     corr.s_curr, corr.focal)
+                                                     corr.s_curr, (corr.focal, corr.ds_dy))
         assert np.allclose(e_b, e[b], rtol=0, atol=TOL["kernel_vs_numpy"] * np.abs(e).max())
         assert np.allclose(J_b, J[b], rtol=0, atol=TOL["kernel_vs_numpy"] * np.abs(J).max())
 
