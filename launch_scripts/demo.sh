@@ -38,7 +38,7 @@ for model in rs gs; do
     python -m rsvo_ros.record "$OUT/live_$model.tum" --idle 8 &
     rec_pid=$!
     pids+=($rec_pid)
-    for _ in $(seq 300); do [ -f "$OUT/live_$model.tum.ready" ] && break; sleep 0.1; done
+    for _ in $(seq 1200); do [ -f "$OUT/live_$model.tum.ready" ] && break; sleep 0.1; done
     rsvo_play "$BAG" --rate "${RATE[$model]}" --wait-for-subscribers 30 --start-delay 1 \
         --topics /camera/image_raw /camera/camera_info
     wait "$rec_pid" || true

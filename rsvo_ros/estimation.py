@@ -20,10 +20,10 @@ from rsvo_ros.rs_model import (
     Correspondences,
     RSBatch,
     make_correspondences,
-    rs_depths,
 )
 from rsvo_ros.rs_solver import (
     LMOptions,
+    depths,
     fix_sign,
     pose_covariance,
     residuals,
@@ -31,7 +31,8 @@ from rsvo_ros.rs_solver import (
     search_paper,
 )
 
-__all__ = ["LMOptions", "RansacOptions", "RelativePoseResult", "estimate_relative_pose"]
+__all__ = ["LMOptions", "RansacOptions", "RelativePoseResult", "estimate_relative_pose",
+           "warm_up"]
 
 MODELS = ("rs", "gs", "mvo")
 RS_MODES = ("fast", "paper")
@@ -42,6 +43,7 @@ PAPER_SAMPLE_SIZE = 20  # Sec. 6: "20 feature point correspondences as the input
 # GS starts of the RS model: OpenCV's USAC with local optimisation finds a good GS fit of RS
 # data (inlier ratio ~35-75 %) in 1-2 ms where plain RANSAC takes 7-35 ms.
 INIT_METHOD = cv2.USAC_FAST
+CHEIRALITY_VOTERS = 100  # inliers that choose among the four decompositions of E
 
 
 @dataclass
@@ -54,7 +56,7 @@ class RansacOptions:
     rs_iterations: int = PAPER_RANSAC_ITERATIONS  # paper mode: LM runs on random 20-point samples
     rs_sample_size: int = PAPER_SAMPLE_SIZE
     init_threshold_px: float = 3.0  # GS initialisation of the RS model tolerates RS distortion
-    init_max_iterations: int = 200
+    init_max_iterations: int = 50  # USAC stops early by its confidence; this caps the worst case
 
 
 @dataclass
@@ -166,9 +168,13 @@ def _pose_from_essential(
     W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     Rs = np.stack([U @ W @ Vt, U @ W.T @ Vt] * 2)
     ts = np.stack([U[:, 2], U[:, 2], -U[:, 2], -U[:, 2]])
-    # depths of lam_c x_c = lam_p R x_p + t in least squares, per candidate (4, n)
-    a = np.einsum("kij,nj->kni", Rs, x_prev[mask])
-    b = x_curr[mask][None]
+    # depths of lam_c x_c = lam_p R x_p + t in least squares, per candidate (4, n); at most
+    # CHEIRALITY_VOTERS evenly spread inliers vote
+    voters = np.flatnonzero(mask)
+    count = min(len(voters), CHEIRALITY_VOTERS)
+    voters = voters[np.linspace(0, len(voters) - 1, count).astype(int)]
+    a = np.einsum("kij,nj->kni", Rs, x_prev[voters])
+    b = x_curr[voters][None]
     aa, bb, ab = (a * a).sum(-1), (b * b).sum(-1), (a * b).sum(-1)
     aT, bT = a @ ts[:, :, None], b @ ts[:, :, None]
     det = aa * bb - ab * ab
@@ -286,7 +292,8 @@ def estimate_relative_pose(
         mode: RS only. ``"fast"`` (default): multi-start search from several GS fits
             (:func:`rsvo_ros.rs_solver.search_fast`). ``"paper"``: Algorithm 1,
             ``ransac.rs_iterations`` LM runs on random 20-point samples from the GS pose with
-            zero velocities, inlier counting, then LM on the best hypothesis' inliers.
+            zero velocities, inlier counting, then LM on the best hypothesis' inliers, with
+            the paper's Sampson error (``E_i`` constant; fast mode adds its row dependence).
         min_inliers: fewer inliers than this gives ``ok=False``.
         min_parallax_px: median parallax (after removing the rotation) below this gives
             ``ok=False`` (pure rotation or no motion: the translation is undefined).
@@ -308,6 +315,8 @@ def estimate_relative_pose(
     row_ref = float(K[1, 2])  # the principal point's row, ~ the image centre
     corr = make_correspondences(pts_prev, pts_curr, K, line_delay, row_ref,
                                 _rows(rows_prev, pts_prev), _rows(rows_curr, pts_curr))
+    if mode == "paper":
+        corr.ds_dy = 0.0  # the paper's Sampson error treats E_i as constant in the image
     n = len(corr)
 
     def finish(res: RelativePoseResult) -> RelativePoseResult:
@@ -337,7 +346,7 @@ def estimate_relative_pose(
     if mask.sum() < min_inliers:
         return failed(f"too few inliers for a GS essential matrix ({int(mask.sum())})", mask,
                       iters)
-    parallax = _rotation_only_residual_px(corr, rng)
+    parallax, R_rot = _rotation_only_residual_px(corr, rng)
     has_pose = np.linalg.norm(t) > 0
     e_gs = _sampson_gs_px(_essential(R, t), corr.x_prev, corr.x_curr, corr.focal)
     # the noise of the model RANSAC fitted (an upper bound: RS distortion adds to it)
@@ -352,7 +361,7 @@ def estimate_relative_pose(
 
     if model in ("gs", "mvo"):
         gs_state = RSBatch.from_pose(R, t)
-        depths_p, depths_c = rs_depths(gs_state, corr)
+        depths_p, depths_c = depths(gs_state, corr)
         return finish(RelativePoseResult(
             True, model, R, t, mask, iterations=iters, cost=float(np.mean(e_gs[mask] ** 2)),
             depths_prev=depths_p[0], depths_curr=depths_c[0],
@@ -365,7 +374,7 @@ def estimate_relative_pose(
                              ransac.threshold_px, lm, rng)
     else:
         starts = [start] + _gs_starts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed,
-                                      min_inliers)
+                                      min_inliers) + [_rotation_start(corr, R_rot)]
         batch = RSBatch(*(np.concatenate([getattr(s, f) for s in starts])
                           for f in ("R", "t", "vel")))  # fmt: skip
         found = search_fast(corr, batch, ransac.threshold_px, lm, rng)
@@ -382,7 +391,7 @@ def estimate_relative_pose(
     scale = np.linalg.norm(t0)
     if not np.isfinite(scale) or scale < 1e-12:
         return failed("degenerate RS solution (zero translation at row 0)", inliers, lm_iters)
-    depths_p, depths_c = rs_depths(state, corr)
+    depths_p, depths_c = depths(state, corr)
     cov = pose_covariance(state, corr.subset(inliers))
     cov[3:, 3:] /= scale**2
     return finish(RelativePoseResult(
@@ -390,6 +399,21 @@ def estimate_relative_pose(
         iterations=lm_iters, cost=float(np.mean(e[0, inliers] ** 2)),
         depths_prev=depths_p[0] / scale, depths_curr=depths_c[0] / scale, covariance=cov,
     ))  # fmt: skip
+
+
+def warm_up() -> float:
+    """Compile (first run after an install, ~25 s on 2 cores) or load from numba's cache
+    (~0.5 s) every solver kernel, by estimating one small synthetic RS pair. Returns seconds."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(0)
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    X = np.column_stack([rng.uniform(-4, 4, (120, 2)), rng.uniform(4, 12, 120)])
+    pts = []
+    for t in (np.zeros(3), np.array([0.3, 0.0, 0.1])):
+        x = (X - t) @ K.T
+        pts.append(x[:, :2] / x[:, 2:])
+    estimate_relative_pose(pts[0], pts[1], K, 1e-5, model="rs", seed=0)
+    return time.perf_counter() - t0
 
 
 def _rows(rows: np.ndarray | None, pts: np.ndarray) -> np.ndarray:
@@ -422,6 +446,20 @@ def _gs_starts(corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacO
     return starts
 
 
+def _rotation_start(corr: Correspondences, R: np.ndarray) -> RSBatch:
+    """A start that does not come from a GS essential matrix: the rotation-only fit's rotation
+    (under strong RS distortion GS fits can be several degrees off) and, given it, the
+    translation of least algebraic epipolar error, ``t . (R x_p  x  x_c) = 0`` (IRLS)."""
+    M = np.cross(corr.x_prev @ R.T, corr.x_curr)
+    w = np.ones(len(M))
+    for _ in range(3):
+        _, _, Vt = np.linalg.svd(M * w[:, None], full_matrices=False)
+        t = Vt[-1]
+        r = np.abs(M @ t)
+        w = 1.0 / np.maximum(r, np.median(r) + 1e-12)
+    return RSBatch.from_pose(R, t)
+
+
 def _essential(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     return tx @ R
@@ -440,9 +478,10 @@ def _kabsch(b_prev: np.ndarray, b_curr: np.ndarray) -> np.ndarray:
 
 
 def _rotation_only_residual_px(corr: Correspondences, rng: np.random.Generator,
-                               hypotheses: int = 64) -> float:
+                               hypotheses: int = 16) -> tuple[float, np.ndarray]:
     """Median image distance (px) left by the best rotation-only motion (2-point RANSAC +
-    refit): what a camera that only rotates cannot explain, i.e. the translation parallax."""
+    refit): what a camera that only rotates cannot explain, i.e. the translation parallax.
+    Returns it and that rotation."""
     b_p = corr.x_prev / np.linalg.norm(corr.x_prev, axis=1, keepdims=True)
     b_c = corr.x_curr / np.linalg.norm(corr.x_curr, axis=1, keepdims=True)
     idx = np.argsort(rng.random((hypotheses, len(corr))), axis=1)[:, :2]
@@ -459,4 +498,4 @@ def _rotation_only_residual_px(corr: Correspondences, rng: np.random.Generator,
         r = residuals(R)
         keep = r <= np.median(r)
         R = _kabsch(b_p[keep], b_c[keep])
-    return float(np.median(residuals(R)))
+    return float(np.median(residuals(R))), R

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 
-from rsvo_ros.estimation import MODELS
+from rsvo_ros.estimation import MODELS, warm_up
 from rsvo_ros.pipeline import FrameResult, OdometryPipeline, PipelineOptions
 from rsvo_ros.tracker import TrackerOptions, to_gray
 
@@ -97,6 +97,10 @@ class RsvoNode(Node):
             self.declare_parameter(name, default, desc)
         self.p = {name: self.get_parameter(name).value for name in PARAMETERS}
         self._validate()
+        # before anything is advertised: the first run after an install compiles the solver
+        self.get_logger().info("loading the solver kernels (the first run after an install "
+                               "compiles them: about half a minute)")
+        self.get_logger().info(f"solver ready in {warm_up():.1f} s")
         self._lock = threading.Lock()
         self._pending: tuple | None = None
         self._waiting: tuple | None = None  # the newest image that came before camera info

@@ -23,6 +23,9 @@ SERIES_ANGLE = 0.25  # rad; below this Exp and J_r use their Taylor series (row 
 # s * |w| <= 20 ms * 5 rad/s = 0.1 rad)
 LAMBDA_MAX = 1e8  # damping at which a hypothesis gives up
 JIT = {"cache": True, "nogil": True, "fastmath": False}
+# lm_batch spreads hypotheses over the cores; the default workqueue layer must not be entered
+# from two threads at once (the node's worker and a test's), OpenMP or TBB may
+nb.config.THREADING_LAYER = "threadsafe"
 
 
 # --------------------------------------------------------------------------- 3-vector algebra
@@ -129,12 +132,11 @@ def _tangent(t):
 
 
 @nb.njit(**JIT, inline="always")
-def _point(R, t, Bt, V, xp, xc, sp, sc, cam, J, want_jacobian):
-    """Sampson error (px) of one correspondence; fills ``J`` (17,) when ``want_jacobian``.
+def _epipolar(R, t, V, xp, xc, sp, sc, cam):
+    """Sampson error (px) of one correspondence and the intermediate terms its Jacobian needs.
 
     The same algebra as :func:`rsvo_ros.rs_model.sampson_residuals`, one point at a time.
-    ``R`` rows, ``t``, ``Bt`` (tangent basis), ``V = (w_p, v_p, w_c, v_c)`` and
-    ``cam = (focal, ds_dy)`` are tuples.
+    ``R`` rows, ``t``, ``V = (w_p, v_p, w_c, v_c)`` and ``cam = (focal, ds_dy)`` are tuples.
     """
     focal, kappa = cam
     wp, vp, wc, vc = V
@@ -166,8 +168,24 @@ def _point(R, t, Bt, V, xp, xc, sp, sc, cam, J, want_jacobian):
     d2 = u[0] * u[0] + u[1] * u[1] + z[0] * z[0] + z[1] * z[1]
     inv_d = 1.0 / np.sqrt(max(d2, 1e-300))
     e = focal * n * inv_d
-    if not want_jacobian:
-        return e
+    return (e, Rp, Jrp, Rc, Jrc, q, a, b, tp, T, g, h, n, Ex, Rth, ETx, m_p, m_c, mp2, da, db,
+            Rv, ab, u, z, inv_d)  # fmt: skip
+
+
+@nb.njit(**JIT, inline="always")
+def _residual(R, t, V, xp, xc, sp, sc, cam):
+    """Sampson error (px) of one correspondence."""
+    return _epipolar(R, t, V, xp, xc, sp, sc, cam)[0]
+
+
+@nb.njit(**JIT)
+def _point(R, t, Bt, V, xp, xc, sp, sc, cam, J):
+    """Sampson error (px) of one correspondence; fills its Jacobian ``J`` (17,).
+    ``Bt``: the tangent basis of ``t``."""
+    (e, Rp, Jrp, Rc, Jrc, q, a, b, tp, T, g, h, n, Ex, Rth, ETx, m_p, m_c, mp2, da, db, Rv, ab,
+     u, z, inv_d) = _epipolar(R, t, V, xp, xc, sp, sc, cam)  # fmt: skip
+    focal, kappa = cam
+    wp, vp, wc, vc = V
     U = _mv(Rc, u)
     A = _mm(R, Rp)
     Z = _mv(A, z)
@@ -224,7 +242,7 @@ def residuals_and_jacobian(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
     for i in range(N):
         xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
         xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-        e[i] = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, J[i], True)
+        e[i] = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, J[i])
     return e, J
 
 
@@ -242,15 +260,13 @@ def _loss(e, robust):
 def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2):
     Rr = _rows(R)
     tt = (t[0], t[1], t[2])
-    Bt = _tangent(tt)
     V = _velocities(vel)
-    dummy = np.empty(NUM_PARAMS)
     c = 0.0
     for m in range(idx.shape[0]):
         i = idx[m]
         xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
         xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-        e = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, dummy, False)
+        e = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
         c += _loss(e, robust)
     for j in range(12):
         c += p2[j] * vel[j] * vel[j]
@@ -273,7 +289,7 @@ def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robus
         i = idx[m]
         xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
         xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-        e = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, J, True)
+        e = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, J)
         c += _loss(e, robust)
         w = 1.0 if robust <= 0.0 else 1.0 / (1.0 + (e / robust) ** 2)
         for r in range(NUM_PARAMS):
@@ -372,14 +388,18 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
     ``basis`` (17, k); a step that raises the cost or leaves ``limits`` is rejected. Returns
     the state, its cost and the iterations run."""
     k = basis.shape[1]
+    full = k == NUM_PARAMS  # the identity basis: no projection
     H = np.empty((NUM_PARAMS, NUM_PARAMS))
     g = np.empty(NUM_PARAMS)
     cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust,
                              p2, H, g)
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007
-        Hb = basis.T @ H @ basis
-        gb = basis.T @ g
+        if full:
+            Hb, gb = H, g
+        else:
+            Hb = basis.T @ H @ basis
+            gb = basis.T @ g
         dmax = 0.0
         for i in range(k):
             dmax = max(dmax, Hb[i, i])
@@ -389,7 +409,7 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
         step, ok = _cholesky_solve(A, -gb)
         accepted = False
         if ok:
-            delta = basis @ step
+            delta = step.copy() if full else basis @ step
             for i in range(NUM_PARAMS):
                 if not np.isfinite(delta[i]):
                     delta[i] = 0.0
@@ -414,7 +434,7 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
     return R, t, vel, cost, it
 
 
-@nb.njit(**JIT)
+@nb.njit(**JIT, parallel=True)
 def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lambda_init,
              rel_tol, robust, p2, basis, limits, anchor):
     """LM for each of B hypotheses on its own correspondences ``idx[b]``.
@@ -430,7 +450,7 @@ def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, la
     vel_out = np.empty_like(vel)
     cost = np.empty(B)
     iters = np.empty(B, np.int64)
-    for b in range(B):
+    for b in nb.prange(B):  # hypotheses are independent: over the cores, same result
         Rb, tb, vb, cb, ib = _lm_one(R[b].copy(), t[b].copy(), vel[b].copy(), x_prev, x_curr,
                                      s_prev, s_curr, cam, idx[b], iterations, lambda_init,
                                      rel_tol, robust, p2, basis, limits, anchor[b])
@@ -444,15 +464,44 @@ def residuals_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
     B = R.shape[0]
     N = x_prev.shape[0]
     e = np.empty((B, N))
-    dummy = np.empty(NUM_PARAMS)
     for b in range(B):
         Rr = _rows(R[b])
         tt = (t[b, 0], t[b, 1], t[b, 2])
-        Bt = _tangent(tt)
         V = _velocities(vel[b])
         for i in range(N):
             xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
             xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-            e[b, i] = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, dummy,
-                             False)
+            e[b, i] = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
     return e
+
+
+@nb.njit(**JIT)
+def depths_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr):
+    """(B, N) depths of every correspondence in both frames, as
+    :func:`rsvo_ros.rs_model.rs_depths` (nan where the rays are parallel)."""
+    B = R.shape[0]
+    N = x_prev.shape[0]
+    lam_p = np.empty((B, N))
+    lam_c = np.empty((B, N))
+    for b in range(B):
+        Rr = _rows(R[b])
+        wp, vp, wc, vc = _velocities(vel[b])
+        for i in range(N):
+            xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
+            xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
+            Rp, _ = _exp_jr(_scale(s_prev[i], wp))
+            Rc, _ = _exp_jr(_scale(s_curr[i], wc))
+            a = _mv(Rr, _mv(Rp, xp))
+            bb = _mv(Rc, xc)
+            T = (t[b, 0], t[b, 1], t[b, 2])
+            T = _add(_add(T, _mv(Rr, _scale(s_prev[i], vp))), _scale(-s_curr[i], vc))
+            aa, b2, ab = _dot(a, a), _dot(bb, bb), _dot(a, bb)
+            aT, bT = _dot(a, T), _dot(bb, T)
+            det = aa * b2 - ab * ab
+            if abs(det) < 1e-15:
+                lam_p[b, i] = np.nan
+                lam_c[b, i] = np.nan
+            else:
+                lam_p[b, i] = (ab * bT - b2 * aT) / det
+                lam_c[b, i] = (aa * bT - ab * aT) / det
+    return lam_p, lam_c

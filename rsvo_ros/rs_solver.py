@@ -15,8 +15,6 @@ from rsvo_ros.rs_model import (
     NUM_PARAMS,
     Correspondences,
     RSBatch,
-    rs_depths,
-    sampson_residuals,
     tangent_basis,
 )
 
@@ -24,6 +22,9 @@ MAX_STEP_ROTATION_RAD = 0.05  # largest rotation change of one LM step (trust re
 MAX_STEP_TRANSLATION_RAD = 0.2  # largest change of the translation direction of one step
 VEL = slice(5, 17)  # velocities [w_p, v_p, w_c, v_c] in the 17-vector
 CHEIRALITY_POINTS = 100  # points that vote on a hypothesis' depth consistency
+# LM iterations of the GS alternative of the model selection: it converges in a few where there
+# is no RS distortion, and where it has not by then the RS fit wins anyway
+GS_SELECTION_ITERATIONS = 5
 PRIOR_NOISE_REF_PX = 1.0  # feature noise (px) at which the velocity prior has its full weight
 
 
@@ -39,7 +40,7 @@ class LMOptions:
     max_iterations: int = 30  # final refinements
     sample_iterations: int = 8  # per RANSAC hypothesis (paper mode: Algorithm 1's LM)
     lambda_init: float = 1e-3
-    rel_tol: float = 1e-9  # stop when every hypothesis improves by less than this fraction
+    rel_tol: float = 1e-7  # stop when a hypothesis improves by less than this fraction
     robust_scale_px: float = 2.0  # Cauchy loss scale of the all-points refinement
     max_angular_velocity: float = 5.0  # rad/s (286 deg/s): bound of the search
     max_readout_translation: float = 5.0  # baselines over half the readout: bound
@@ -49,8 +50,8 @@ class LMOptions:
     init_thresholds_px: tuple[float, ...] = (1.0, 8.0)  # extra GS starts (fast mode)
     samples_per_start: int = 8  # fast mode: LM runs on random samples from each GS start
     sample_size: int = 40  # fast mode: correspondences per sample
-    sample_difference_iterations: int = 6  # fast mode: first with only velocity differences
-    sample_full_iterations: int = 6  # fast mode: then all 17 DOF
+    sample_difference_iterations: int = 4  # fast mode: first with only velocity differences
+    sample_full_iterations: int = 4  # fast mode: then all 17 DOF
     polish_rounds: int = 2  # final refinements on the inliers with the noise-scaled prior
     model_selection_aic: float = 2.0  # GS instead of RS unless the velocities earn this (0: off)
 
@@ -94,6 +95,15 @@ def residuals(state: RSBatch, corr: Correspondences) -> np.ndarray:
     )  # fmt: skip
 
 
+def depths(state: RSBatch, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
+    """(B, N) depths in both frames (compiled; equal to :func:`rsvo_ros.rs_model.rs_depths`)."""
+    return rs_kernels.depths_batch(
+        np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
+        np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
+        corr.s_curr,
+    )  # fmt: skip
+
+
 @dataclass
 class SearchLimits:
     """What a step may not do: the physical bounds (``|w| <= w_max``, ``|v| <= v_max``) and
@@ -128,9 +138,10 @@ def levenberg_marquardt(
     Returns the states, their costs (B,) and the total iterations over the batch.
     """
     B = len(state)
+    # fresh writable C arrays: one compiled signature of the kernel
     if idx is None:
-        idx = np.broadcast_to(np.arange(len(corr)), (B, len(corr)))
-    idx = np.ascontiguousarray(idx, dtype=np.int64)
+        idx = np.tile(np.arange(len(corr), dtype=np.int64), (B, 1))
+    idx = np.array(idx, dtype=np.int64, order="C")
     p2 = np.zeros(12) if prior_inv_sigma is None else np.asarray(prior_inv_sigma, float) ** 2
     basis = np.eye(NUM_PARAMS) if basis is None else np.ascontiguousarray(basis, float)
     bounds = np.array([MAX_STEP_ROTATION_RAD, MAX_STEP_TRANSLATION_RAD, np.inf, np.inf, np.inf])
@@ -146,7 +157,7 @@ def levenberg_marquardt(
         corr.s_curr, (float(corr.focal), float(corr.ds_dy)), idx, int(iterations),
         float(lambda_init), float(rel_tol),
         0.0 if robust_scale is None else float(robust_scale), p2, basis, bounds,
-        np.ascontiguousarray(anchor, float),
+        np.array(anchor, dtype=float, order="C"),
     )  # fmt: skip
     return RSBatch(R, t, vel), cost, int(iters.sum())
 
@@ -154,7 +165,7 @@ def levenberg_marquardt(
 def _depth_sign_counts(state: RSBatch, corr: Correspondences,
                        mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(B,) counts of the (B, N) ``mask``'s points in front of / behind both cameras."""
-    lam_p, lam_c = rs_depths(state, corr)
+    lam_p, lam_c = depths(state, corr)
     front = np.count_nonzero(mask & (lam_p > 0) & (lam_c > 0), axis=1)
     behind = np.count_nonzero(mask & (lam_p < 0) & (lam_c < 0), axis=1)
     return front, behind
@@ -265,7 +276,8 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
         # refined the same way; keep the RS fit only if it lowers the cost by more than 12
         # extra parameters fitting noise would (Akaike: aic * 12 * sigma^2).
         gs = RSBatch(best.R.copy(), best.t.copy(), np.zeros_like(best.vel))
-        gs, _, it5 = levenberg_marquardt(gs, corr, lm.max_iterations, lambda_init=lm.lambda_init,
+        gs, _, it5 = levenberg_marquardt(gs, corr, GS_SELECTION_ITERATIONS,
+                                         lambda_init=lm.lambda_init,
                                          rel_tol=lm.rel_tol, robust_scale=scale,
                                          basis=np.eye(NUM_PARAMS)[:, :5], limits=final_limits)
         gs, it6 = _polish(gs, corr, threshold_px, lm, None, final_limits, gs_only=True)
@@ -313,9 +325,11 @@ def pose_covariance(state: RSBatch, corr: Correspondences, gs_only: bool = False
     dof = 5 if gs_only else NUM_PARAMS
     if n <= dof:
         return np.full((6, 6), np.inf)
-    e, J = sampson_residuals(state, corr, jacobian=True)
-    J = J[0, :, :dof]
-    sigma2 = float(e[0] @ e[0]) / (n - dof)  # px^2; J is in px per parameter unit
+    e, J = rs_kernels.residuals_and_jacobian(state.R[0], state.t[0], state.vel[0], corr.x_prev,
+                                             corr.x_curr, corr.s_prev, corr.s_curr,
+                                             (float(corr.focal), float(corr.ds_dy)))
+    J = J[:, :dof]
+    sigma2 = float(e @ e) / (n - dof)  # px^2; J is in px per parameter unit
     H = J.T @ J
     try:
         cov = np.linalg.inv(H + 1e-12 * np.trace(H) * np.eye(dof)) * max(sigma2, 1e-12)

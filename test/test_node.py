@@ -28,6 +28,9 @@ pytestmark = pytest.mark.ros
 HELPERS = REPO_ROOT / "test" / "ros_helpers"
 BIN = Path(sys.executable).parent
 FRAMES = 24
+# the node advertises after loading its solver kernels; a fresh install (the colcon test)
+# compiles them first (~25 s on 2 cores)
+READY_TIMEOUT_S = 120
 
 
 @pytest.fixture(scope="module")
@@ -88,10 +91,10 @@ def _run_graph(graph: Graph, bag: Path, node_args: list[str], play_args: list[st
                expected: int, node_cmd: list[str] | None = None) -> dict:
     rec = graph.tmp / "rec.json"
     graph.start("recorder", [sys.executable, str(HELPERS / "record_odom.py"), str(rec),
-                             str(expected), "90"])  # fmt: skip
+                             str(expected), str(READY_TIMEOUT_S + 90)])  # fmt: skip
     node = graph.start("node", [*(node_cmd or [str(BIN / "rsvo_node")]), "--ros-args",
                                 *node_args])
-    assert _wait_file(Path(str(rec) + ".ready"), 40), graph.log("node")
+    assert _wait_file(Path(str(rec) + ".ready"), READY_TIMEOUT_S), graph.log("node")
     player = graph.start("player", [str(BIN / "rsvo_play"), str(bag), "--topics",
                                     "/camera/image_raw", "/camera/camera_info",
                                     "--wait-for-subscribers", "30", "--start-delay", "1",
@@ -183,10 +186,10 @@ def test_bad_images_are_reported_and_good_ones_still_processed(graph):
     frames = 24
     rec = graph.tmp / "rec.json"
     graph.start("recorder", [sys.executable, str(HELPERS / "record_odom.py"), str(rec),
-                             "16", "90"])  # fmt: skip
+                             "16", str(READY_TIMEOUT_S + 90)])  # fmt: skip
     node = graph.start("node", [str(BIN / "rsvo_node"), "--ros-args", "-p", "model:=gs",
                                 "-p", "line_delay:=0.0002"])  # fmt: skip
-    assert _wait_file(Path(str(rec) + ".ready"), 40), graph.log("node")
+    assert _wait_file(Path(str(rec) + ".ready"), READY_TIMEOUT_S), graph.log("node")
     pub = graph.start("publisher", [sys.executable, str(HELPERS / "publish_mixed.py"),
                                     str(frames)])  # fmt: skip
     assert pub.wait(timeout=90) == 0, graph.log("publisher")

@@ -91,12 +91,14 @@ def test_sign_flip_of_translation_and_velocities_keeps_the_residual(rng):
 def test_compiled_kernel_equals_the_numpy_model(rng):
     """rs_kernels evaluates the same residuals and Jacobian as the numpy specification."""
     from rsvo_ros import rs_kernels
-    from rsvo_ros.rs_solver import residuals
+    from rsvo_ros.rs_solver import depths, residuals
 
     corr, state = _random_problem(rng)
     e, J = sampson_residuals(state, corr, jacobian=True)
     assert np.allclose(residuals(state, corr), e, rtol=0,
                        atol=TOL["kernel_vs_numpy"] * np.abs(e).max())
+    for got, want in zip(depths(state, corr), rs_depths(state, corr), strict=True):
+        assert np.allclose(got, want, rtol=TOL["kernel_vs_numpy"], atol=0)
     for b in range(len(state)):
         e_b, J_b = rs_kernels.residuals_and_jacobian(state.R[b], state.t[b], state.vel[b],
                                                      corr.x_prev, corr.x_curr, corr.s_prev,

@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# The README's rsvo_replay table: RS against GS on synthetic vehicle bags, with and without
+# rolling shutter, and the frame rate at 1280x720. Every figure is read from the summary.json
+# that rsvo_replay writes. Outputs go to results/replay_table (override with RSVO_TABLE_OUTPUT).
+#   bash launch_scripts/replay_table.sh            # the 640x360 sequences (about 2 minutes)
+#   RSVO_TABLE_HD=1 bash launch_scripts/replay_table.sh   # plus the 1280x720 frame rate
+set -euo pipefail
+REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
+# shellcheck source=/dev/null
+source "$REPO_ROOT/launch_scripts/ros_env.sh"
+OUT="${RSVO_TABLE_OUTPUT:-$REPO_ROOT/results/replay_table}"
+mkdir -p "$OUT"
+
+# name | rsvo_synth options
+SEQUENCES=(
+    "sev1_s0|--severity 1 --seed 0"
+    "sev2_s0|--severity 2 --seed 0"
+    "sev2_s1|--severity 2 --seed 1"
+    "sev2_s2|--severity 2 --seed 2"
+    "gs_sev1_s0|--severity 1 --seed 0 --line-delay 0"
+    "gs_sev2_s1|--severity 2 --seed 1 --line-delay 0"
+    "gs_sev2_s2|--severity 2 --seed 2 --line-delay 0"
+)
+ate() { python -c "import json,sys; print('%.3f' % json.load(open(sys.argv[1]))['accuracy']['ate_m']['rmse'])" "$1"; }
+fps() { python -c "import json,sys; print('%.1f' % json.load(open(sys.argv[1]))['frames_per_second'])" "$1"; }
+
+rows=()
+for entry in "${SEQUENCES[@]}"; do
+    name="${entry%%|*}"
+    # shellcheck disable=SC2086
+    rsvo_synth "$OUT/$name" --motion vehicle --frames 60 ${entry#*|} --overwrite >/dev/null
+    for model in rs gs; do
+        rsvo_replay "$OUT/$name" --output "$OUT/${name}_$model" --model "$model" --overwrite \
+            --no-progress >/dev/null
+    done
+    a_rs="$(ate "$OUT/${name}_rs/summary.json")"
+    a_gs="$(ate "$OUT/${name}_gs/summary.json")"
+    ratio="$(python -c "print('%.2f' % ($a_rs / $a_gs))")"
+    rows+=("| ${entry#*|} | $a_rs m | $a_gs m | $ratio |")
+done
+echo "| rsvo_synth options (vehicle, 60 frames, 640x360) | RS ATE | GS ATE | RS / GS |"
+echo "|---|---|---|---|"
+printf '%s\n' "${rows[@]}"
+
+if [ -n "${RSVO_TABLE_HD:-}" ]; then
+    rsvo_synth "$OUT/hd" --motion vehicle --severity 2 --frames 60 --resolution 1280x720 \
+        --overwrite >/dev/null
+    for model in rs gs; do
+        /usr/bin/time -v rsvo_replay "$OUT/hd" --output "$OUT/hd_$model" --model "$model" \
+            --overwrite --no-progress 2> "$OUT/hd_$model.time" >/dev/null
+        rss="$(awk '/Maximum resident/ {printf "%.0f", $6 / 1024}' "$OUT/hd_$model.time")"
+        echo "1280x720, model $model: $(fps "$OUT/hd_$model/summary.json") frames/s end to end, peak RSS $rss MB"
+    done
+fi
