@@ -15,7 +15,13 @@ solver's reference row, per correspondence ``E_i = Rc^T [t + R s_p v_p - s_c v_c
 
 from __future__ import annotations
 
-import numba as nb
+import os
+
+# OpenMP threads that spin after lm_batch's parallel loop would take the other core from
+# OpenCV (tracking, the GS starts); let them sleep. Read when libgomp starts.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba as nb  # noqa: E402
 import numpy as np
 
 NUM_PARAMS = 17
