@@ -29,7 +29,7 @@ rows=()
 for entry in "${SEQUENCES[@]}"; do
     name="${entry%%|*}"
     # shellcheck disable=SC2086
-    rsvo_synth "$OUT/$name" --motion vehicle --frames 60 ${entry#*|} --overwrite >/dev/null
+    rsvo_synth "$OUT/$name" --motion vehicle --frames 60 ${entry#*|} --overwrite --no-progress >/dev/null
     for model in rs gs; do
         rsvo_replay "$OUT/$name" --output "$OUT/${name}_$model" --model "$model" --overwrite \
             --no-progress >/dev/null
@@ -45,7 +45,7 @@ printf '%s\n' "${rows[@]}"
 
 if [ -n "${RSVO_TABLE_HD:-}" ]; then
     rsvo_synth "$OUT/hd" --motion vehicle --severity 2 --frames 60 --resolution 1280x720 \
-        --overwrite >/dev/null
+        --overwrite --no-progress >/dev/null
     for model in rs gs; do
         /usr/bin/time -v rsvo_replay "$OUT/hd" --output "$OUT/hd_$model" --model "$model" \
             --overwrite --no-progress 2> "$OUT/hd_$model.time" >/dev/null
