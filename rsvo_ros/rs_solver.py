@@ -52,8 +52,9 @@ class LMOptions:
     sample_size: int = 40  # fast mode: correspondences per sample
     sample_difference_iterations: int = 4  # fast mode: first with only velocity differences
     sample_full_iterations: int = 4  # fast mode: then all 17 DOF
-    polish_rounds: int = 2  # final refinements on the inliers with the noise-scaled prior
+    polish_rounds: int = 1  # final refinements on the inliers with the noise-scaled prior
     model_selection_aic: float = 2.0  # GS instead of RS unless the velocities earn this (0: off)
+    polish_gs_alternative: bool = False  # also refine the model selection's GS fit on inliers
 
 
 def velocity_prior(corr: Correspondences, sigma_rotation_rad: float,
@@ -280,7 +281,9 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
                                          lambda_init=lm.lambda_init,
                                          rel_tol=lm.rel_tol, robust_scale=scale,
                                          basis=np.eye(NUM_PARAMS)[:, :5], limits=final_limits)
-        gs, it6 = _polish(gs, corr, threshold_px, lm, None, final_limits, gs_only=True)
+        it6 = 0
+        if lm.polish_gs_alternative:
+            gs, it6 = _polish(gs, corr, threshold_px, lm, None, final_limits, gs_only=True)
         e_rs, e_gs = residuals(best, corr)[0], residuals(gs, corr)[0]
         sigma = 1.4826 * float(np.median(np.abs(e_rs)))
         gain = float(cauchy_cost(e_gs, scale) - cauchy_cost(e_rs, scale))
