@@ -4,10 +4,18 @@ Pure Python/numpy (no rclpy): the same object serves ``rsvo_replay`` and the liv
 differ only in where frames come from and where results go.
 
 Chaining as in the paper: ``T_{k+1} = T_k [R t; 0 1]^-1`` with ``X_curr = R X_prev + t``, i.e.
-``T_world_curr = T_world_prev @ inv(T_curr_prev)``. Scale: the first pair's baseline is
-``initial_scale``; each later pair's ``|t|`` makes the depths of the points it shares with the
-previous pair agree (median ratio, depths from the RS model in the shared frame's own row
-cameras); without enough shared points it keeps the previous baseline.
+``T_world_curr = T_world_prev @ inv(T_curr_prev)``, applied to the cameras of the frames'
+middle rows (the reference row of the RS solver): their relative motion needs no velocity to be
+right, while the row-0 one inherits the velocities' errors (which from two views stay large
+under noise). Each frame's row-0 pose, what the pipeline reports (CONTRACTS.md), is where the
+chain of middle-row cameras was at the row-0 time: ``row_mid * tau`` before the frame's middle
+row, interpolated between consecutive middle-row poses. With a global shutter (``tau = 0``, or
+the GS models, whose reference row is row 0) this is the plain chain.
+
+Scale: the first pair's baseline is ``initial_scale``; each later pair's ``|t|`` makes the
+depths of the points it shares with the previous pair agree (a line fitted to their inverse
+depths, triangulated with the middle-row relative poses); without enough shared points it keeps
+the previous baseline.
 """
 
 from __future__ import annotations
@@ -23,11 +31,11 @@ from rsvo_ros.estimation import (
     RelativePoseResult,
     estimate_relative_pose,
 )
+from rsvo_ros.geometry import pose_at_row, so3_exp, so3_log
 from rsvo_ros.tracker import FeatureTracker, TrackerOptions, undistort_points
 
 MIN_SHARED_FOR_SCALE = 8  # shared triangulated points needed to measure the relative scale
 MAX_DEPTH_IN_BASELINES = 40.0  # farther points do not vote on the scale
-SCALE_SMOOTHING = 0.15  # weight of a pair's measured baseline against the previous one (log)
 MAX_SCALE_STEP = 1.25  # largest change of the baseline from one pair to the next
 HOLD_COVARIANCE_GROWTH = 4.0  # covariance multiplier of a held (not estimated) pose
 DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
@@ -72,6 +80,45 @@ class FrameResult:
         return self.T_world_cam is not None
 
 
+def _triangulate(R: np.ndarray, t: np.ndarray, pts_prev: np.ndarray, pts_curr: np.ndarray,
+                 K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depths (N,) along the bearings of both pixels for ``X_curr = R X_prev + t``: least
+    squares of ``lam_c b = lam_p R a + t`` (nan for parallel rays)."""
+    K_inv = np.linalg.inv(K)
+    a = np.column_stack([pts_prev, np.ones(len(pts_prev))]) @ K_inv.T @ R.T
+    b = np.column_stack([pts_curr, np.ones(len(pts_curr))]) @ K_inv.T
+    aa, bb, ab = (a * a).sum(1), (b * b).sum(1), (a * b).sum(1)
+    at, bt = a @ t, b @ t
+    det = aa * bb - ab * ab
+    det = np.where(np.abs(det) < 1e-15, np.nan, det)
+    return (ab * bt - bb * at) / det, (aa * bt - ab * at) / det
+
+
+def _scale_from_inverse_depths(pairs: np.ndarray) -> float:
+    """``s`` with ``d_old = s d_new`` from (n, 2) depth pairs of the same points: a line through
+    the origin fitted to the inverse depths (``1/d_new = s / d_old``), which weights near points
+    (large parallax, small depth error) most, with one round of outlier trimming."""
+    rho_old, rho_new = 1.0 / pairs[:, 0], 1.0 / pairs[:, 1]
+    keep = np.ones(len(pairs), bool)
+    for _ in range(2):
+        s = float(rho_old[keep] @ rho_new[keep] / max(rho_old[keep] @ rho_old[keep], 1e-300))
+        r = rho_new - s * rho_old
+        mad = 1.4826 * float(np.median(np.abs(r[keep]))) + 1e-12
+        keep = np.abs(r) < 3.0 * mad
+        if keep.sum() < MIN_SHARED_FOR_SCALE:
+            break
+    return s
+
+
+def _interpolate(T: np.ndarray, a: float) -> np.ndarray:
+    """The fraction ``a`` of the motion ``T`` (4, 4): rotation ``Exp(a Log R)``, translation
+    ``a p`` (constant velocity between two poses; ``a`` outside [0, 1] extrapolates)."""
+    out = np.eye(4)
+    out[:3, :3] = so3_exp(a * so3_log(T[:3, :3]))
+    out[:3, 3] = a * T[:3, 3]
+    return out
+
+
 def _inverse(T: np.ndarray) -> np.ndarray:
     Ti = np.eye(4)
     Ti[:3, :3] = T[:3, :3].T
@@ -104,11 +151,12 @@ class OdometryPipeline:
         """Forget everything: the next frame starts a new trajectory at the identity."""
         self.tracker.reset()
         self.T_world_cam = np.eye(4)
+        self._T_world_mid: np.ndarray | None = None  # the last posed frame's middle-row camera
         self.covariance = np.zeros((6, 6))
         self._last_stamp: int | None = None
         self._index = 0
         self._prev_depths: dict[int, float] = {}  # track id -> metric depth in the last frame
-        self._last_scale = self.options.initial_scale
+        self._last_baseline = self.options.initial_scale  # metres between middle-row cameras
         self._started = False
 
     def process(self, stamp_ns: int, gray: np.ndarray) -> FrameResult:
@@ -129,7 +177,7 @@ class OdometryPipeline:
         if self._last_stamp is not None and stamp_ns <= self._last_stamp:
             kind = "duplicate" if stamp_ns == self._last_stamp else "backwards"
             return result("skipped", f"{kind} stamp ({stamp_ns} after {self._last_stamp} ns)")
-        self._last_stamp = stamp_ns
+        prev_stamp, self._last_stamp = self._last_stamp, stamp_ns
         pair = self.tracker.track(gray)
         if not self._started:
             self._started = True
@@ -157,51 +205,74 @@ class OdometryPipeline:
             return result("held", f"no pose for this pair: {rel.reason}", num_tracks=n,
                           num_inliers=rel.num_inliers, inlier_ratio=rel.inlier_ratio,
                           relative=rel, pts_prev=pair.pts_prev, pts_curr=pair.pts_curr)
-        scale, scale_note = self._relative_scale(pair.ids, rel)
+        row_mid, tau = float(rel.row_ref), self.line_delay  # 0 for the GS models
+        R_m, t_m, _ = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev, rel.w_curr,
+                                  rel.v_curr, row_mid, tau)  # in units of |t| (row 0)
+        unit = float(np.linalg.norm(t_m))
+        if not np.isfinite(unit) or unit < 1e-9:
+            self._hold()
+            return result("held", "no translation between the middle rows", num_tracks=n,
+                          relative=rel)
+        # depths for the scale: triangulated with the middle-row relative pose (the velocities'
+        # errors would make each pair's RS depths disagree with the next pair's)
+        d_prev, d_curr = _triangulate(R_m, t_m, pts_prev, pts_curr, self.K)
+        scale, scale_note = self._relative_scale(pair.ids, rel, d_prev, unit)
         T_curr_prev = np.eye(4)
-        T_curr_prev[:3, :3] = rel.R
-        T_curr_prev[:3, 3] = rel.t * scale
-        T_new = self.T_world_cam @ _inverse(T_curr_prev)
-        if not np.isfinite(T_new).all():
+        T_curr_prev[:3, :3], T_curr_prev[:3, 3] = R_m, t_m * scale
+        M = _inverse(T_curr_prev)  # the current middle-row camera in the previous one
+        # row 0 is exposed row_mid * tau before the middle row: where the frames' middle-row
+        # cameras were at those times, interpolated along the motion between them
+        lead = row_mid * tau / max((stamp_ns - prev_stamp) * 1e-9, 1e-9)
+        T_world_mid = self._T_world_mid
+        if T_world_mid is None:  # the first pair: place the previous frame's middle row
+            T_world_mid = self.T_world_cam @ _inverse(_interpolate(M, -lead))
+        T_mid_new = T_world_mid @ M
+        T_new = T_world_mid @ _interpolate(M, 1.0 - lead)
+        if not (np.isfinite(T_new).all() and np.isfinite(T_mid_new).all()):
             self._hold()
             return result("held", "non-finite chained pose", num_tracks=n, relative=rel)
         self.T_world_cam = T_new
+        self._T_world_mid = T_mid_new
         self._accumulate_covariance(rel, scale)
-        depth = rel.depths_curr * scale
+        depth = d_curr * scale
         good = rel.inliers & np.isfinite(depth) & (depth > 0)
         self._prev_depths = dict(zip(pair.ids[good].tolist(), depth[good].tolist(), strict=True))
-        self._last_scale = scale
+        self._last_baseline = scale * unit
         return result("posed", scale_note, num_tracks=n, num_inliers=rel.num_inliers,
                       inlier_ratio=rel.inlier_ratio, scale=scale, relative=rel,
                       pts_prev=pair.pts_prev, pts_curr=pair.pts_curr)
 
     # ------------------------------------------------------------------ internals
 
-    def _relative_scale(self, ids: np.ndarray, rel: RelativePoseResult) -> tuple[float, str]:
-        """Baseline (m) of this pair from the depths it shares with the previous pair.
+    def _relative_scale(self, ids: np.ndarray, rel: RelativePoseResult, depths_prev: np.ndarray,
+                        unit: float) -> tuple[float, str]:
+        """Metres per unit of ``rel.t`` from the depths this pair shares with the previous one.
 
-        Only points within ``MAX_DEPTH_IN_BASELINES`` of the camera vote (far points have
-        ill-conditioned depths); the measured value is blended with the previous baseline in
-        log space (``SCALE_SMOOTHING``) and its change per pair is bounded: cameras on vehicles
-        and in hands change speed slowly compared to the noise of two-view depths.
+        ``depths_prev`` (N,): this pair's depths in the previous frame, in units of ``rel.t``;
+        the previous pair stored the same points' metric depths. Only points within
+        ``MAX_DEPTH_IN_BASELINES`` vote; the fit is on inverse depths, which weights near
+        points (small depth error) most. The result is used as measured, not blended with the
+        previous baseline: each pair's scale is measured against depths the previous scale
+        produced, so a pair's error is undone by the next one instead of adding up, while any
+        blending would keep a part of every real change of speed out for good (a steadily
+        accelerating vehicle then drifts in scale). A change of the baseline between middle
+        rows (``unit`` of them per unit of ``rel.t``) beyond ``MAX_SCALE_STEP`` is clipped.
         """
-        ratios = []
-        for i, d_new, inl in zip(ids.tolist(), rel.depths_prev, rel.inliers, strict=True):
+        pairs = []
+        for i, d_new, inl in zip(ids.tolist(), depths_prev, rel.inliers, strict=True):
             d_old = self._prev_depths.get(i)
             if (inl and d_old is not None and np.isfinite(d_new)
                     and 0 < d_new < MAX_DEPTH_IN_BASELINES):  # fmt: skip
-                ratios.append(d_old / d_new)
-        last = self._last_scale
-        if len(ratios) < MIN_SHARED_FOR_SCALE:
-            why = "no shared depths" if not self._prev_depths else f"{len(ratios)} shared"
-            return last, f"scale from the previous baseline ({why})"
-        measured = float(np.exp(np.median(np.log(ratios))))
+                pairs.append((d_old, d_new))
+        last = self._last_baseline
+        if len(pairs) < MIN_SHARED_FOR_SCALE:
+            why = "no shared depths" if not self._prev_depths else f"{len(pairs)} shared"
+            return last / unit, f"scale from the previous baseline ({why})"
+        measured = _scale_from_inverse_depths(np.array(pairs)) * unit
         lim = self.options.max_scale_change
         if not (np.isfinite(measured) and last / lim <= measured <= last * lim):
-            return last, f"scale {measured:.3g} rejected: kept the previous baseline"
-        a = SCALE_SMOOTHING
-        s = float(np.exp((1 - a) * np.log(last) + a * np.log(measured)))
-        return float(np.clip(s, last / MAX_SCALE_STEP, last * MAX_SCALE_STEP)), ""
+            return last / unit, f"baseline {measured:.3g} rejected: kept the previous one"
+        return float(np.clip(measured, last / MAX_SCALE_STEP, last * MAX_SCALE_STEP)) / unit, ""
 
     def _accumulate_covariance(self, rel: RelativePoseResult, scale: float) -> None:
         """Random-walk growth: the pair's covariance, rotated into the world frame."""
@@ -219,6 +290,6 @@ class OdometryPipeline:
     def _hold(self) -> None:
         """Keep the pose; the uncertainty grows; depths of the skipped pair are unknown."""
         grow = np.diag([DEFAULT_POSITION_VARIANCE] * 3 + [1e-3] * 3) * HOLD_COVARIANCE_GROWTH
-        self.covariance = self.covariance + grow * max(self._last_scale, 1e-3) ** 2
+        self.covariance = self.covariance + grow * max(self._last_baseline, 1e-3) ** 2
         self._prev_depths = {}
 

@@ -133,3 +133,20 @@ def test_pipeline_rejects_a_bad_camera():
         OdometryPipeline(np.zeros((3, 3)), None, 0.0)
     with pytest.raises(ValueError, match="line_delay"):
         OdometryPipeline(np.eye(3), None, -1.0)
+
+
+def test_scale_follows_a_camera_that_speeds_up():
+    """The synthetic vehicle speeds up (its baseline grows ~10 % over these frames); the chained
+    scale must follow it, not keep part of every change out (a blended scale would)."""
+    cfg = SynthConfig(frames=20, motion="vehicle", severity=0.0, width=640, height=360,
+                      line_delay=0.0)
+    _, out = _run(cfg, model="rs")
+    assert all(r.status in ("first", "posed") for _, r in out)
+    p_gt = np.array([fr.p_world_cam for fr, _ in out])
+    p_est = np.array([r.T_world_cam[:3, 3] for _, r in out])
+    b_gt = np.linalg.norm(np.diff(p_gt, axis=0), axis=1)
+    b_est = np.linalg.norm(np.diff(p_est, axis=0), axis=1)
+    growth_gt = b_gt[-5:].mean() / b_gt[:5].mean()
+    growth_est = b_est[-5:].mean() / b_est[:5].mean()
+    assert growth_gt > 1.05
+    assert growth_est == pytest.approx(growth_gt, rel=0.03)
