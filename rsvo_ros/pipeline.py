@@ -14,8 +14,8 @@ the GS models, whose reference row is row 0) this is the plain chain.
 
 Scale: the first pair's baseline is ``initial_scale``; each later pair's ``|t|`` makes the
 depths of the points it shares with the previous pair agree (a line fitted to their inverse
-depths, triangulated with the middle-row relative poses); without enough shared points it keeps
-the previous baseline.
+depths, which the estimator gives in each point's own row camera); without enough shared points
+it keeps the previous baseline.
 """
 
 from __future__ import annotations
@@ -78,20 +78,6 @@ class FrameResult:
     @property
     def has_pose(self) -> bool:
         return self.T_world_cam is not None
-
-
-def _triangulate(R: np.ndarray, t: np.ndarray, pts_prev: np.ndarray, pts_curr: np.ndarray,
-                 K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Depths (N,) along the bearings of both pixels for ``X_curr = R X_prev + t``: least
-    squares of ``lam_c b = lam_p R a + t`` (nan for parallel rays)."""
-    K_inv = np.linalg.inv(K)
-    a = np.column_stack([pts_prev, np.ones(len(pts_prev))]) @ K_inv.T @ R.T
-    b = np.column_stack([pts_curr, np.ones(len(pts_curr))]) @ K_inv.T
-    aa, bb, ab = (a * a).sum(1), (b * b).sum(1), (a * b).sum(1)
-    at, bt = a @ t, b @ t
-    det = aa * bb - ab * ab
-    det = np.where(np.abs(det) < 1e-15, np.nan, det)
-    return (ab * bt - bb * at) / det, (aa * bt - ab * at) / det
 
 
 def _scale_from_inverse_depths(pairs: np.ndarray) -> float:
@@ -213,9 +199,7 @@ class OdometryPipeline:
             self._hold()
             return result("held", "no translation between the middle rows", num_tracks=n,
                           relative=rel)
-        # depths for the scale: triangulated with the middle-row relative pose (the velocities'
-        # errors would make each pair's RS depths disagree with the next pair's)
-        d_prev, d_curr = _triangulate(R_m, t_m, pts_prev, pts_curr, self.K)
+        d_prev, d_curr = rel.depths_prev, rel.depths_curr  # in each point's own row camera
         scale, scale_note = self._relative_scale(pair.ids, rel, d_prev, unit)
         T_curr_prev = np.eye(4)
         T_curr_prev[:3, :3], T_curr_prev[:3, 3] = R_m, t_m * scale
