@@ -78,7 +78,7 @@ def _mm(A, B):
 @nb.njit(**JIT, inline="always")
 def _exp_jr(p):
     """``Exp(p)`` and the right Jacobian ``J_r(p)`` (tuples of rows), as
-    :func:`rsvo_ros.rs_model._exp_and_jacobian`."""
+    :func:`rsvo_ros.geometry.so3_exp` and :func:`rsvo_ros.geometry.so3_right_jacobian`."""
     th2 = _dot(p, p)
     if th2 < SERIES_ANGLE**2:
         # Taylor series in th^2 (truncation < 1e-17 here): no sqrt, sin or cos per point

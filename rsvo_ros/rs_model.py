@@ -14,8 +14,9 @@ the paper's first-order ``I + s[w]x``):
 
 The Sampson error is that of the paper's Sec. 6, ``e_i = x_c^T E_i x_p / sqrt((E_i x_p)_1^2 +
 (E_i x_p)_2^2 + (E_i^T x_c)_1^2 + (E_i^T x_c)_2^2)``, in normalized coordinates, multiplied by
-the focal length (pixels). Like the paper it treats ``E_i`` as constant when differentiating
-with respect to the image coordinates (the row dependence is O(tau)).
+the focal length (pixels), with one addition: ``E_i`` depends on the points' rows, and the
+gradient in the denominator includes that (``Correspondences.ds_dy``; 0 gives the paper's
+constant-``E_i`` error).
 """
 
 from __future__ import annotations
@@ -24,42 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rsvo_ros.geometry import so3_exp, so3_right_jacobian
+
 NUM_PARAMS = 17  # 3 rotation + 2 translation direction + 4 x 3 velocities (paper: 17 DOF)
-
-
-def _exp_and_jacobian(phi: np.ndarray, jacobian: bool):
-    """``Exp(phi)`` and optionally the right Jacobian ``J_r(phi)`` of (..., 3) vectors.
-
-    Uses ``[phi]x^2 = phi phi^T - theta^2 I``: ``Exp = (1 - b th^2) I + a [phi]x + b phi phi^T``,
-    ``J_r = (1 - c th^2) I - b [phi]x + c phi phi^T``.
-    """
-    th2 = np.einsum("...i,...i->...", phi, phi)
-    th = np.sqrt(th2)
-    small = th < 1e-4
-    ts = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th2 / 6.0, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ts)) / (ts * ts))
-    c = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ts - np.sin(ts)) / (ts * ts * ts))
-    x, y, z = phi[..., 0], phi[..., 1], phi[..., 2]
-    outer = phi[..., :, None] * phi[..., None, :]
-
-    def compose(diag, skew, sym):
-        M = sym[..., None, None] * outer
-        M[..., 0, 0] += diag
-        M[..., 1, 1] += diag
-        M[..., 2, 2] += diag
-        M[..., 0, 1] -= skew * z
-        M[..., 1, 0] += skew * z
-        M[..., 0, 2] += skew * y
-        M[..., 2, 0] -= skew * y
-        M[..., 1, 2] -= skew * x
-        M[..., 2, 1] += skew * x
-        return M
-
-    R = compose(1.0 - b * th2, a, b)
-    if not jacobian:
-        return R, None
-    return R, compose(1.0 - c * th2, -b, c)
 
 
 @dataclass
@@ -103,7 +71,7 @@ class RSBatch:
         ``R <- R Exp(dtheta)``; ``t <- normalize(t + B dt)`` with ``B`` from
         :func:`tangent_basis`; velocities additive.
         """
-        dR, _ = _exp_and_jacobian(delta[:, 0:3], jacobian=False)
+        dR = so3_exp(delta[:, 0:3])
         t_new = self.t + np.einsum("bij,bj->bi", tangent_basis(self.t), delta[:, 3:5])
         t_new /= np.linalg.norm(t_new, axis=1, keepdims=True)
         return RSBatch(self.R @ dR, t_new, self.vel + delta[:, 5:17])
@@ -206,8 +174,7 @@ def sampson_residuals(
     w_p, v_p, w_c, v_c = vel[:, 0:3], vel[:, 3:6], vel[:, 6:9], vel[:, 9:12]
     phi_p = s_p[..., None] * w_p[:, None, :]
     phi_c = s_c[..., None] * w_c[:, None, :]
-    Rp, Jr_p = _exp_and_jacobian(phi_p, jacobian)
-    Rc, Jr_c = _exp_and_jacobian(phi_c, jacobian)
+    Rp, Rc = so3_exp(phi_p), so3_exp(phi_c)
     q = np.einsum("bnij,bnj->bni", Rp, x_p)  # Rp x_p
     a = np.einsum("bij,bnj->bni", R, q)  # R Rp x_p
     b = np.einsum("bnij,bnj->bni", Rc, x_c)  # Rc x_c
@@ -271,6 +238,7 @@ def sampson_residuals(
     Rtc_da = np.einsum("bji,bnj->bni", R, c_da)
     Rtc_Rv = np.einsum("bji,bnj->bni", R, c_Rv)
 
+    Jr_p, Jr_c = so3_right_jacobian(phi_p), so3_right_jacobian(phi_c)
     J = np.empty(e.shape + (NUM_PARAMS,))
     # rotation, R <- R Exp(d): da = -R [q]x d, dT = -R [tp]x d, ETx gains Rp^T [R^T h]x d,
     # d(da/ds_p) = -R [Rp m_p]x d, d(R v_p) = -R [v_p]x d
@@ -309,8 +277,8 @@ def rs_depths(state: RSBatch, corr: Correspondences) -> tuple[np.ndarray, np.nda
     """
     x_p, x_c, s_p, s_c = _broadcast(corr, len(state), None)
     vel = state.vel
-    Rp, _ = _exp_and_jacobian(s_p[..., None] * vel[:, None, 0:3], False)
-    Rc, _ = _exp_and_jacobian(s_c[..., None] * vel[:, None, 6:9], False)
+    Rp = so3_exp(s_p[..., None] * vel[:, None, 0:3])
+    Rc = so3_exp(s_c[..., None] * vel[:, None, 6:9])
     a = np.einsum("bij,bnj->bni", state.R, np.einsum("bnij,bnj->bni", Rp, x_p))
     b = np.einsum("bnij,bnj->bni", Rc, x_c)
     tp = s_p[..., None] * vel[:, None, 3:6]
