@@ -168,18 +168,13 @@ def _pose_from_essential(
     W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     Rs = np.stack([U @ W @ Vt, U @ W.T @ Vt] * 2)
     ts = np.stack([U[:, 2], U[:, 2], -U[:, 2], -U[:, 2]])
-    # depths of lam_c x_c = lam_p R x_p + t in least squares, per candidate (4, n); at most
-    # CHEIRALITY_VOTERS evenly spread inliers vote
+    # depths of the four candidates (4, n); at most CHEIRALITY_VOTERS evenly spread inliers vote
     voters = np.flatnonzero(mask)
     count = min(len(voters), CHEIRALITY_VOTERS)
     voters = voters[np.linspace(0, len(voters) - 1, count).astype(int)]
-    a = np.einsum("kij,nj->kni", Rs, x_prev[voters])
-    b = x_curr[voters][None]
-    aa, bb, ab = (a * a).sum(-1), (b * b).sum(-1), (a * b).sum(-1)
-    aT, bT = a @ ts[:, :, None], b @ ts[:, :, None]
-    det = aa * bb - ab * ab
-    lam_p = (ab * bT[..., 0] - bb * aT[..., 0]) * det
-    lam_c = (aa * bT[..., 0] - ab * aT[..., 0]) * det  # det >= 0: signs are those of depths
+    zeros = np.zeros(len(voters))
+    lam_p, lam_c = depths(RSBatch.from_pose(Rs, ts),
+                          Correspondences(x_prev[voters], x_curr[voters], zeros, zeros, 1.0))
     front = np.count_nonzero((lam_p > 0) & (lam_c > 0), axis=1)
     k = int(np.argmax(front))
     if front[k] == 0:
@@ -348,7 +343,6 @@ def estimate_relative_pose(
                       iters)
     parallax, R_rot = _rotation_only_residual_px(corr, rng)
     has_pose = np.linalg.norm(t) > 0
-    e_gs = _sampson_gs_px(_essential(R, t), corr.x_prev, corr.x_curr, corr.focal)
     # the noise of the model RANSAC fitted (an upper bound: RS distortion adds to it)
     e_fit = _sampson_gs_px(E, corr.x_prev, corr.x_curr, corr.focal)
     noise_px = float(np.median(e_fit[mask])) if has_pose else 0.0
@@ -361,6 +355,7 @@ def estimate_relative_pose(
 
     if model in ("gs", "mvo"):
         gs_state = RSBatch.from_pose(R, t)
+        e_gs = _sampson_gs_px(_essential(R, t), corr.x_prev, corr.x_curr, corr.focal)
         depths_p, depths_c = depths(gs_state, corr)
         return finish(RelativePoseResult(
             True, model, R, t, mask, iterations=iters, cost=float(np.mean(e_gs[mask] ** 2)),

@@ -54,7 +54,6 @@ class LMOptions:
     sample_full_iterations: int = 4  # fast mode: then all 17 DOF
     polish_rounds: int = 1  # final refinements on the inliers with the noise-scaled prior
     model_selection_aic: float = 2.0  # GS instead of RS unless the velocities earn this (0: off)
-    polish_gs_alternative: bool = False  # also refine the model selection's GS fit on inliers
 
 
 def velocity_prior(corr: Correspondences, sigma_rotation_rad: float,
@@ -85,24 +84,29 @@ def cauchy_cost(e: np.ndarray, scale: float | None) -> np.ndarray:
     return np.sum(scale**2 * np.log1p((e / scale) ** 2), axis=-1)
 
 
+def _kernel_args(state: RSBatch, corr: Correspondences) -> tuple:
+    """The states and correspondences as the compiled kernels take them: C-contiguous
+    float arrays, then ``x_prev, x_curr, s_prev, s_curr``."""
+    return (np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
+            np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
+            corr.s_curr)  # fmt: skip
+
+
+def _cam(corr: Correspondences) -> tuple[float, float]:
+    """``(focal, ds_dy)`` for the kernels' Sampson error."""
+    return float(corr.focal), float(corr.ds_dy)
+
+
 def residuals(state: RSBatch, corr: Correspondences) -> np.ndarray:
     """(B, N) Sampson errors (px) of every hypothesis on every correspondence (compiled
     :func:`rsvo_ros.rs_kernels.residuals_batch`; equal to
     :func:`rsvo_ros.rs_model.sampson_residuals`)."""
-    return rs_kernels.residuals_batch(
-        np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
-        np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
-        corr.s_curr, (float(corr.focal), float(corr.ds_dy)),
-    )  # fmt: skip
+    return rs_kernels.residuals_batch(*_kernel_args(state, corr), _cam(corr))
 
 
 def depths(state: RSBatch, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
     """(B, N) depths in both frames (compiled; equal to :func:`rsvo_ros.rs_model.rs_depths`)."""
-    return rs_kernels.depths_batch(
-        np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
-        np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
-        corr.s_curr,
-    )  # fmt: skip
+    return rs_kernels.depths_batch(*_kernel_args(state, corr))
 
 
 @dataclass
@@ -153,9 +157,7 @@ def levenberg_marquardt(
             bounds[4] = limits.max_rotation_change
             anchor = np.broadcast_to(limits.anchor_R, state.R.shape)
     R, t, vel, cost, iters = rs_kernels.lm_batch(
-        np.ascontiguousarray(state.R, float), np.ascontiguousarray(state.t, float),
-        np.ascontiguousarray(state.vel, float), corr.x_prev, corr.x_curr, corr.s_prev,
-        corr.s_curr, (float(corr.focal), float(corr.ds_dy)), idx, int(iterations),
+        *_kernel_args(state, corr), _cam(corr), idx, int(iterations),
         float(lambda_init), float(rel_tol),
         0.0 if robust_scale is None else float(robust_scale), p2, basis, bounds,
         np.array(anchor, dtype=float, order="C"),
@@ -274,29 +276,25 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
     best, it4 = _polish(best, corr, threshold_px, lm, prior, final_limits)
     if lm.model_selection_aic > 0:
         # Are the velocities supported by the data? The GS model (zero velocities, 5 DOF)
-        # refined the same way; keep the RS fit only if it lowers the cost by more than 12
-        # extra parameters fitting noise would (Akaike: aic * 12 * sigma^2).
+        # refined from the RS pose on all points; keep the RS fit only if it lowers the cost by
+        # more than 12 extra parameters fitting noise would (Akaike: aic * 12 * sigma^2).
         gs = RSBatch(best.R.copy(), best.t.copy(), np.zeros_like(best.vel))
         gs, _, it5 = levenberg_marquardt(gs, corr, GS_SELECTION_ITERATIONS,
                                          lambda_init=lm.lambda_init,
                                          rel_tol=lm.rel_tol, robust_scale=scale,
                                          basis=np.eye(NUM_PARAMS)[:, :5], limits=final_limits)
-        it6 = 0
-        if lm.polish_gs_alternative:
-            gs, it6 = _polish(gs, corr, threshold_px, lm, None, final_limits, gs_only=True)
         e_rs, e_gs = residuals(best, corr)[0], residuals(gs, corr)[0]
         sigma = 1.4826 * float(np.median(np.abs(e_rs)))
         gain = float(cauchy_cost(e_gs, scale) - cauchy_cost(e_rs, scale))
         if gain < lm.model_selection_aic * (NUM_PARAMS - 5) * sigma**2:
             best = gs
-        it4 += it5 + it6
+        it4 += it5
     total = it1 + it2 + it3 + it4
     return SearchResult(best, total, len(hyps))
 
 
 def _polish(best: RSBatch, corr: Correspondences, threshold_px: float, lm: LMOptions,
-            prior: np.ndarray | None, limits: SearchLimits,
-            gs_only: bool = False) -> tuple[RSBatch, int]:
+            prior: np.ndarray | None, limits: SearchLimits) -> tuple[RSBatch, int]:
     """Refinements on the inliers of ``best`` with the prior scaled by the noise."""
     it4 = 0
     for _ in range(lm.polish_rounds):
@@ -313,8 +311,7 @@ def _polish(best: RSBatch, corr: Correspondences, threshold_px: float, lm: LMOpt
             prior_i = prior * np.sqrt(inl.sum() / len(corr)) * noise
         best, _, it = levenberg_marquardt(best, corr.subset(inl), lm.max_iterations,
                                           lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
-                                          prior_inv_sigma=prior_i, limits=limits,
-                                          basis=np.eye(NUM_PARAMS)[:, :5] if gs_only else None)
+                                          prior_inv_sigma=prior_i, limits=limits)
         it4 += it
     return best, it4
 
@@ -329,8 +326,7 @@ def pose_covariance(state: RSBatch, corr: Correspondences, gs_only: bool = False
     if n <= dof:
         return np.full((6, 6), np.inf)
     e, J = rs_kernels.residuals_and_jacobian(state.R[0], state.t[0], state.vel[0], corr.x_prev,
-                                             corr.x_curr, corr.s_prev, corr.s_curr,
-                                             (float(corr.focal), float(corr.ds_dy)))
+                                             corr.x_curr, corr.s_prev, corr.s_curr, _cam(corr))
     J = J[:, :dof]
     sigma2 = float(e @ e) / (n - dof)  # px^2; J is in px per parameter unit
     H = J.T @ J
