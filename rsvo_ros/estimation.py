@@ -270,6 +270,8 @@ def estimate_relative_pose(
     min_parallax_px: float = 0.5,
     rows_prev: np.ndarray | None = None,
     rows_curr: np.ndarray | None = None,
+    frame_interval: float | None = None,
+    predicted: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> RelativePoseResult:
     """Relative pose of two frames from pixel correspondences.
 
@@ -295,6 +297,13 @@ def estimate_relative_pose(
         rows_prev, rows_curr: (N,) sensor rows of the points when they differ from
             ``pts_*[:, 1]`` (points undistorted from a lens-distorted image keep the exposure
             time of their raw row).
+        frame_interval: seconds between the frames (a video stream; RS fast mode only): the
+            velocity prior is centred on the constant velocity of the pair's own motion
+            (``LMOptions.motion_prior_*``) instead of zero. None: frames of unknown timing,
+            velocities independent of the motion between them (the paper's experiment).
+        predicted: RS fast mode: a motion ``(R, t)`` of the reference-row cameras (the
+            principal point's row) expected for this pair, e.g. the previous pair's in a video
+            stream: one more start of the search.
 
     Raises:
         ValueError: bad input (too few points, NaN/inf, shape mismatch, singular K, all points
@@ -370,9 +379,11 @@ def estimate_relative_pose(
     else:
         starts = [start] + _gs_starts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed,
                                       min_inliers) + [_rotation_start(corr, R_rot)]
+        if predicted is not None and _usable_motion(*predicted):
+            starts.append(RSBatch.from_pose(*predicted))
         batch = RSBatch(*(np.concatenate([getattr(s, f) for s in starts])
                           for f in ("R", "t", "vel")))  # fmt: skip
-        found = search_fast(corr, batch, ransac.threshold_px, lm, rng)
+        found = search_fast(corr, batch, ransac.threshold_px, lm, rng, frame_interval)
     lm_iters = found.iterations
     e = residuals(found.state, corr)
     inliers = np.abs(e[0]) < ransac.threshold_px
@@ -439,6 +450,12 @@ def _gs_starts(corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacO
         if inl.sum() >= min_inliers and np.linalg.norm(t) > 0:
             starts.append(RSBatch.from_pose(R, t))
     return starts
+
+
+def _usable_motion(R: np.ndarray, t: np.ndarray) -> bool:
+    R, t = np.asarray(R, float), np.asarray(t, float)
+    return (R.shape == (3, 3) and t.shape == (3,) and bool(np.isfinite(R).all())
+            and bool(np.isfinite(t).all()) and float(np.linalg.norm(t)) > 0)  # fmt: skip
 
 
 def _rotation_start(corr: Correspondences, R: np.ndarray) -> RSBatch:

@@ -68,6 +68,11 @@ PARAMETERS = {
     "model": ("rs", _str("Relative pose model.", MODELS)),
     "max_features": (500, _int("Tracked corners (paper: 500).", 20, 5000)),
     "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
+    "motion_prior": (True, ParameterDescriptor(
+        description="RS: centre the velocity prior on the constant velocity of each frame "
+                    "pair's motion (from the image stamps) and start the search also from the "
+                    "previous pair's motion. False: each pair on its own, as in the paper.",
+        type=ParameterType.PARAMETER_BOOL)),
     "lm_max_iterations": (30, _int("Levenberg-Marquardt iterations of the refinements.", 1,
                                    500)),
     "odom_frame": ("odom", _str("frame_id of the odometry and path.")),
@@ -215,7 +220,8 @@ class RsvoNode(Node):
             return
         K, D, _, _ = self._camera
         opts = PipelineOptions(model=self.p["model"],
-                               tracker=TrackerOptions(max_features=int(self.p["max_features"])))
+                               tracker=TrackerOptions(max_features=int(self.p["max_features"])),
+                               motion_prior=bool(self.p["motion_prior"]))
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
         self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)

@@ -219,7 +219,8 @@ def replay(cfg: ReplayConfig) -> dict:
     wall = time.perf_counter() - t_start
     frames_in = sum(statuses.values()) + sum(skipped.values())
     summary = {
-        "bag": str(cfg.bag), "model": cfg.model, "line_delay_s": line_delay,
+        "bag": str(cfg.bag), "model": cfg.model, "motion_prior": options.motion_prior,
+        "line_delay_s": line_delay,
         "image_topic": cfg.image_topic, "frames_in_bag": n_images,
         "frames_in": frames_in, "frames_posed": len(est),
         "frames_estimated": statuses.get("posed", 0), "frames_held": statuses.get("held", 0),
@@ -339,6 +340,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--line-delay", type=float, default=None, metavar="S",
                    help=f"seconds per image row (default: the bag's {bagio.LINE_DELAY_KEY})")
     p.add_argument("--max-features", type=int, default=500, help="tracked corners (500)")
+    p.add_argument("--no-motion-prior", action="store_true",
+                   help="RS: estimate each frame pair on its own (the paper's setting) instead "
+                        "of centring the velocity prior on the stream's constant velocity and "
+                        "starting from the previous pair's motion")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -351,7 +356,8 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
                        args.camera_info_topic, args.ground_truth_topic, args.line_delay,
-                       args.max_features, args.overwrite, not args.no_progress)  # fmt: skip
+                       args.max_features, args.overwrite, not args.no_progress,
+                       PipelineOptions(motion_prior=not args.no_motion_prior))  # fmt: skip
     try:
         s = replay(cfg)
     except (ValueError, FileExistsError) as exc:

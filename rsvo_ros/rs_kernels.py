@@ -263,7 +263,7 @@ def _loss(e, robust):
 
 
 @nb.njit(**JIT)
-def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2):
+def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2, mu):
     Rr = _rows(R)
     tt = (t[0], t[1], t[2])
     V = _velocities(vel)
@@ -275,14 +275,16 @@ def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2):
         e = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
         c += _loss(e, robust)
     for j in range(12):
-        c += p2[j] * vel[j] * vel[j]
+        c += p2[j] * (vel[j] - mu[j]) ** 2
     return c
 
 
 @nb.njit(**JIT)
-def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2, H, g):
-    """Fills ``H = J^T W J + P``, ``g = J^T W e + P vel`` (IRLS weights ``W`` of the Cauchy
-    loss, prior ``P = diag(p2)`` on the velocities); returns the cost."""
+def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2, mu, H,
+                      g):  # fmt: skip
+    """Fills ``H = J^T W J + P``, ``g = J^T W e + P (vel - mu)`` (IRLS weights ``W`` of the
+    Cauchy loss, prior ``P = diag(p2)`` on the velocities, centred on ``mu``); returns the
+    cost."""
     Rr = _rows(R)
     tt = (t[0], t[1], t[2])
     Bt = _tangent(tt)
@@ -307,9 +309,9 @@ def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robus
         for s in range(r):
             H[r, s] = H[s, r]
     for j in range(12):
-        c += p2[j] * vel[j] * vel[j]
+        c += p2[j] * (vel[j] - mu[j]) ** 2
         H[5 + j, 5 + j] += p2[j]
-        g[5 + j] += p2[j] * vel[j]
+        g[5 + j] += p2[j] * (vel[j] - mu[j])
     return c
 
 
@@ -389,7 +391,7 @@ def _within_limits(R, vel, delta, limits, anchor):
 
 @nb.njit(**JIT)
 def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam, rel_tol,
-            robust, p2, basis, limits, anchor):
+            robust, p2, mu, basis, limits, anchor):
     """Marquardt's damped Gauss-Newton ``(H + lambda diag(H)) d = -g`` in the span of
     ``basis`` (17, k); a step that raises the cost or leaves ``limits`` is rejected. Returns
     the state, its cost and the iterations run."""
@@ -398,7 +400,7 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
     H = np.empty((NUM_PARAMS, NUM_PARAMS))
     g = np.empty(NUM_PARAMS)
     cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust,
-                             p2, H, g)
+                             p2, mu, H, g)
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007
         if full:
@@ -421,7 +423,7 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
                     delta[i] = 0.0
             R_c, t_c, vel_c = _retract(R, t, vel, delta)
             cost_c = _cost(R_c, t_c, vel_c, x_prev, x_curr, s_prev, s_curr, cam, idx,
-                           robust, p2)
+                           robust, p2, mu)
             if np.isfinite(cost_c) and cost_c < cost and _within_limits(R_c, vel_c, delta,
                                                                         limits, anchor):
                 accepted = True
@@ -436,17 +438,18 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
         if rel < rel_tol:
             break
         cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx,
-                                 robust, p2, H, g)
+                                 robust, p2, mu, H, g)
     return R, t, vel, cost, it
 
 
 @nb.njit(**JIT, parallel=True)
 def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lambda_init,
-             rel_tol, robust, p2, basis, limits, anchor):
+             rel_tol, robust, p2, mu, basis, limits, anchor):
     """LM for each of B hypotheses on its own correspondences ``idx[b]``.
 
     ``R`` (B, 3, 3), ``t`` (B, 3), ``vel`` (B, 12); ``idx`` (B, n) int64; ``robust`` the
-    Cauchy scale in px (0: squares); ``p2`` (12,) squared inverse prior std; ``basis`` (17, k);
+    Cauchy scale in px (0: squares); ``p2`` (12,) squared inverse prior std; ``mu`` (B, 12)
+    the prior's centres; ``basis`` (17, k);
     ``limits`` (5,) as :func:`_within_limits`; ``anchor`` (B, 3, 3). Returns new states, costs
     (B,) and iterations (B,).
     """
@@ -459,7 +462,7 @@ def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, la
     for b in nb.prange(B):  # hypotheses are independent: over the cores, same result
         Rb, tb, vb, cb, ib = _lm_one(R[b].copy(), t[b].copy(), vel[b].copy(), x_prev, x_curr,
                                      s_prev, s_curr, cam, idx[b], iterations, lambda_init,
-                                     rel_tol, robust, p2, basis, limits, anchor[b])
+                                     rel_tol, robust, p2, mu[b], basis, limits, anchor[b])
         R_out[b], t_out[b], vel_out[b], cost[b], iters[b] = Rb, tb, vb, cb, ib
     return R_out, t_out, vel_out, cost, iters
 

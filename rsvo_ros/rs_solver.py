@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rsvo_ros import rs_kernels
+from rsvo_ros.geometry import so3_log
 from rsvo_ros.rs_model import (
     NUM_PARAMS,
     Correspondences,
@@ -53,6 +54,12 @@ class LMOptions:
     sample_difference_iterations: int = 4  # fast mode: first with only velocity differences
     sample_full_iterations: int = 4  # fast mode: then all 17 DOF
     polish_rounds: int = 1  # final refinements on the inliers with the noise-scaled prior
+    # With the frames' interval known (a video stream), the prior is centred on the constant
+    # velocity of the pair's own motion instead of zero, with these stds of the departure from
+    # it over half the readout (the paper's source mentions, commented out, taking the
+    # velocities from the nearest frames). 0: keep the zero-mean prior.
+    motion_prior_rotation_rad: float = 0.1
+    motion_prior_translation: float = 0.3
     model_selection_aic: float = 2.0  # GS instead of RS unless the velocities earn this (0: off)
 
 
@@ -62,6 +69,20 @@ def velocity_prior(corr: Correspondences, sigma_rotation_rad: float,
     s_max = corr.s_max
     pw, pv = s_max / sigma_rotation_rad, s_max / sigma_translation
     return np.repeat([pw, pv, pw, pv], 3)
+
+
+def constant_velocity(state: RSBatch, frame_interval: float) -> np.ndarray:
+    """(B, 12) ``[w_p, v_p, w_c, v_c]`` of a camera that moves between the two frames'
+    reference rows at constant velocity: ``X_curr = R X_prev + t`` over ``frame_interval`` s.
+
+    The previous camera turns by ``R^T`` and moves its centre to ``-R^T t`` (its own frame);
+    the body-frame rate is the same in both frames, the velocity of the centre is ``-R^T t``
+    per interval in the previous frame and ``-t`` in the current one.
+    """
+    w = so3_log(np.transpose(state.R, (0, 2, 1))) / frame_interval
+    v_c = -state.t / frame_interval
+    v_p = np.einsum("bji,bj->bi", state.R, v_c)
+    return np.concatenate([w, v_p, w, v_c], axis=1)
 
 
 def difference_basis() -> np.ndarray:
@@ -132,15 +153,17 @@ def levenberg_marquardt(
     prior_inv_sigma: np.ndarray | None = None,
     basis: np.ndarray | None = None,
     limits: SearchLimits | None = None,
+    prior_mean: np.ndarray | None = None,
 ) -> tuple[RSBatch, np.ndarray, int]:
     """Minimise the (optionally Cauchy-robust) Sampson error of every hypothesis of a batch.
 
     Marquardt's damping ``(H + lambda diag(H)) d = -g`` per hypothesis, ``H = J^T W J``,
-    ``g = J^T W e``, IRLS weights ``W`` of the robust loss, plus the zero-mean velocity prior
-    ``sum((p * vel)^2)``. ``basis`` (17, k) restricts the steps to a subspace; ``limits``
-    rejects steps like a cost increase. Each hypothesis ``b`` uses all correspondences or the
-    rows ``idx[b]``. Runs in the compiled kernel :func:`rsvo_ros.rs_kernels.lm_batch`.
-    Returns the states, their costs (B,) and the total iterations over the batch.
+    ``g = J^T W e``, IRLS weights ``W`` of the robust loss, plus the velocity prior
+    ``sum((p * (vel - prior_mean))^2)`` (``prior_mean`` (B, 12), default zero). ``basis``
+    (17, k) restricts the steps to a subspace; ``limits`` rejects steps like a cost increase.
+    Each hypothesis ``b`` uses all correspondences or the rows ``idx[b]``. Runs in the
+    compiled kernel :func:`rsvo_ros.rs_kernels.lm_batch`. Returns the states, their costs
+    (B,) and the total iterations over the batch.
     """
     B = len(state)
     # fresh writable C arrays: one compiled signature of the kernel
@@ -148,6 +171,8 @@ def levenberg_marquardt(
         idx = np.tile(np.arange(len(corr), dtype=np.int64), (B, 1))
     idx = np.array(idx, dtype=np.int64, order="C")
     p2 = np.zeros(12) if prior_inv_sigma is None else np.asarray(prior_inv_sigma, float) ** 2
+    mu = np.zeros((B, 12)) if prior_mean is None else prior_mean
+    mu = np.array(np.broadcast_to(mu, (B, 12)), dtype=float, order="C")
     basis = np.eye(NUM_PARAMS) if basis is None else np.ascontiguousarray(basis, float)
     bounds = np.array([MAX_STEP_ROTATION_RAD, MAX_STEP_TRANSLATION_RAD, np.inf, np.inf, np.inf])
     anchor = state.R
@@ -159,7 +184,7 @@ def levenberg_marquardt(
     R, t, vel, cost, iters = rs_kernels.lm_batch(
         *_kernel_args(state, corr), _cam(corr), idx, int(iterations),
         float(lambda_init), float(rel_tol),
-        0.0 if robust_scale is None else float(robust_scale), p2, basis, bounds,
+        0.0 if robust_scale is None else float(robust_scale), p2, mu, basis, bounds,
         np.array(anchor, dtype=float, order="C"),
     )  # fmt: skip
     return RSBatch(R, t, vel), cost, int(iters.sum())
@@ -228,7 +253,7 @@ def search_paper(corr: Correspondences, start: RSBatch, iterations: int, sample_
 
 
 def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm: LMOptions,
-                rng: np.random.Generator) -> SearchResult:
+                rng: np.random.Generator, frame_interval: float | None = None) -> SearchResult:
     """Multi-start search (the default).
 
     From each GS start, ``samples_per_start`` LM runs on random samples (first with only the
@@ -236,31 +261,49 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
     the velocity prior and bounds and within ``max_rotation_change_rad`` of their start. The
     hypothesis with consistent depths and the lowest robust cost on all points wins; it is
     refined on all points (Cauchy loss), then on its inliers.
+
+    The velocity prior is zero-mean (``prior_*``) for frames of unknown timing. With
+    ``frame_interval`` (s between the frames of a video stream) it is centred on the constant
+    velocity of each hypothesis' own motion (:func:`constant_velocity`, re-centred before every
+    refinement) with the ``motion_prior_*`` stds, and every run starts there.
     """
     n_starts, k = len(starts), lm.samples_per_start
     scale = lm.robust_scale_px
+    moving = (frame_interval is not None and frame_interval > 0
+              and min(lm.motion_prior_rotation_rad, lm.motion_prior_translation) > 0)
     prior = None
-    if lm.prior_rotation_rad > 0 and lm.prior_translation > 0:
+    if moving:
+        prior = np.sqrt(len(corr)) * velocity_prior(corr, lm.motion_prior_rotation_rad,
+                                                    lm.motion_prior_translation)
+    elif lm.prior_rotation_rad > 0 and lm.prior_translation > 0:
         prior = np.sqrt(len(corr)) * velocity_prior(corr, lm.prior_rotation_rad,
                                                     lm.prior_translation)
+
+    def centre(state: RSBatch) -> np.ndarray | None:
+        return constant_velocity(state, frame_interval) if moving else None
+
     size = min(lm.sample_size, len(corr))
     prior_s = None if prior is None else prior * np.sqrt(size / len(corr))
     origin = np.repeat(np.arange(n_starts), k)
     hyps = starts.take(origin)
+    if moving:
+        hyps.vel = centre(hyps)
     idx = _random_samples(len(corr), len(hyps), size, rng)
     limits = SearchLimits(lm.max_angular_velocity, lm.max_readout_translation / corr.s_max,
                           starts.R[origin], lm.max_rotation_change_rad)
     hyps, _, it1 = levenberg_marquardt(hyps, corr, lm.sample_difference_iterations, idx=idx,
                                        lambda_init=lm.lambda_init, robust_scale=scale,
                                        prior_inv_sigma=prior_s, basis=difference_basis(),
-                                       limits=limits)
+                                       limits=limits, prior_mean=centre(hyps))
     hyps, _, it2 = levenberg_marquardt(hyps, corr, lm.sample_full_iterations, idx=idx,
                                        lambda_init=lm.lambda_init, robust_scale=scale,
-                                       prior_inv_sigma=prior_s, limits=limits)
+                                       prior_inv_sigma=prior_s, limits=limits,
+                                       prior_mean=centre(hyps))
     e = residuals(hyps, corr)
     cost = cauchy_cost(e, scale)
     if prior is not None:
-        cost = cost + (hyps.vel**2) @ prior**2
+        mu = centre(hyps)
+        cost = cost + ((hyps.vel if mu is None else hyps.vel - mu) ** 2) @ prior**2
     check = _random_samples(len(corr), 1, min(CHEIRALITY_POINTS, len(corr)), rng)[0]
     consistent = cheirality_fraction(hyps, corr.subset(check),
                                      np.abs(e[:, check]) < 3.0 * scale) >= 0.75
@@ -272,8 +315,8 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
     best, _, it3 = levenberg_marquardt(best, corr, lm.max_iterations,
                                        lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
                                        robust_scale=scale, prior_inv_sigma=prior,
-                                       limits=final_limits)
-    best, it4 = _polish(best, corr, threshold_px, lm, prior, final_limits)
+                                       limits=final_limits, prior_mean=centre(best))
+    best, it4 = _polish(best, corr, threshold_px, lm, prior, final_limits, centre)
     if lm.model_selection_aic > 0:
         # Are the velocities supported by the data? The GS model (zero velocities, 5 DOF)
         # refined from the RS pose on all points; keep the RS fit only if it lowers the cost by
@@ -294,8 +337,10 @@ def search_fast(corr: Correspondences, starts: RSBatch, threshold_px: float, lm:
 
 
 def _polish(best: RSBatch, corr: Correspondences, threshold_px: float, lm: LMOptions,
-            prior: np.ndarray | None, limits: SearchLimits) -> tuple[RSBatch, int]:
-    """Refinements on the inliers of ``best`` with the prior scaled by the noise."""
+            prior: np.ndarray | None, limits: SearchLimits,
+            centre=lambda state: None) -> tuple[RSBatch, int]:  # fmt: skip
+    """Refinements on the inliers of ``best`` with the prior scaled by the noise, centred on
+    ``centre(best)`` (None: zero)."""
     it4 = 0
     for _ in range(lm.polish_rounds):
         # The prior matters in proportion to the noise (MAP: prior term ~ sigma^2): scale it by
@@ -311,7 +356,8 @@ def _polish(best: RSBatch, corr: Correspondences, threshold_px: float, lm: LMOpt
             prior_i = prior * np.sqrt(inl.sum() / len(corr)) * noise
         best, _, it = levenberg_marquardt(best, corr.subset(inl), lm.max_iterations,
                                           lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
-                                          prior_inv_sigma=prior_i, limits=limits)
+                                          prior_inv_sigma=prior_i, limits=limits,
+                                          prior_mean=centre(best))
         it4 += it
     return best, it4
 

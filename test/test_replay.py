@@ -30,13 +30,14 @@ def _topics(path):
         return {c.topic: c.msgcount for c in r.connections}
 
 
-@pytest.mark.parametrize("model", ["gs", "rs"])
-def test_replay_writes_every_output(vehicle_bag, tmp_path, model, capsys):
+@pytest.mark.parametrize("model, extra", [("gs", []), ("rs", []), ("rs", ["--no-motion-prior"])])
+def test_replay_writes_every_output(vehicle_bag, tmp_path, model, extra, capsys):
     out = tmp_path / model
     assert replay_main([str(vehicle_bag), "--output", str(out), "--model", model,
-                        "--no-progress"]) == 0
+                        "--no-progress", *extra]) == 0
     assert "frames posed" in capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["motion_prior"] == ("--no-motion-prior" not in extra)
     assert summary["frames_in"] == 8 == summary["frames_in_bag"]
     assert summary["frames_posed"] + summary["frames_skipped"] == summary["frames_in"]
     assert summary["frames_posed"] >= 7

@@ -123,3 +123,20 @@ def test_compiled_lm_reaches_the_ground_truth_from_a_perturbed_start(paper_scene
     found, _, iterations = levenberg_marquardt(start, corr, 100, rel_tol=0.0)
     assert iterations > 0
     assert np.abs(residuals(found, corr)).max() < 1e-6
+
+
+def test_constant_velocity_of_a_screw_motion():
+    """A screw along the rotation axis has a constant body twist: the velocities that
+    ``constant_velocity`` reads off the relative pose are exactly the twist, in both frames."""
+    from rsvo_ros.rs_solver import constant_velocity
+
+    w = np.array([0.3, -0.2, 0.5])  # rad/s, body frame
+    v = 4.0 * w / np.linalg.norm(w)  # m/s along the axis: the body velocity stays v
+    dt = 1.0 / 30.0
+    R_world_curr, p_world_curr = so3_exp(dt * w), dt * v
+    R = R_world_curr.T  # X_curr = R X_prev + t
+    t = -R_world_curr.T @ p_world_curr
+    vel = constant_velocity(RSBatch.from_pose(R, t), dt)[0]
+    unit = np.linalg.norm(t)  # velocities are in units of |t| per second
+    expected = np.concatenate([w, v / unit, w, v / unit])
+    assert np.allclose(vel, expected, rtol=0, atol=TOL["roundtrip"] * np.abs(expected).max())

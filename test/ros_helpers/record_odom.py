@@ -3,7 +3,8 @@
 usage: record_odom.py OUT.json EXPECTED TIMEOUT_S
 Writes OUT.json.ready once a /rsvo/odom publisher is discovered (the test starts the player
 only then: volatile messages published before discovery are lost). Stops after EXPECTED
-odometry messages (then 2 s more), 5 s after the last one (a lossy link), or at TIMEOUT_S.
+odometry messages (then 2 s more and two diagnostics published after them, so the last one
+counts every frame), 5 s after the last one (a lossy link), or at TIMEOUT_S.
 """
 
 import json
@@ -37,7 +38,7 @@ def main():
                 level = st.level
                 level = int.from_bytes(level, "little") if isinstance(level, bytes) else level
                 row = {kv.key: kv.value for kv in st.values}
-                row.update(message=st.message, level=int(level))
+                row.update(message=st.message, level=int(level), t_recv=time.monotonic())
                 diags.append(row)
 
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -55,7 +56,8 @@ def main():
             open(out + ".ready", "w").close()
         if len(odom) >= expected and done_at is None:
             done_at = time.monotonic()
-        if done_at is not None and time.monotonic() - done_at > 2.0:
+        if (done_at is not None and time.monotonic() - done_at > 2.0
+                and sum(d["t_recv"] > done_at for d in diags) >= 2):
             break
         if odom and time.time() - odom[-1]["t_recv"] > IDLE_S:
             break
