@@ -160,8 +160,9 @@ def test_random_correspondences_give_no_pose(rng, model):
 
 def test_frame_interval_centres_the_velocity_prior_on_the_stream_motion():
     """Pairs of a shaking vehicle (synthetic, 0.3 px noise): given the frames' interval, the
-    velocities come out near the truth, and the translation direction better, than from two
-    views alone (there: 5.4 deg, 108 % and 140 % median errors; given it: 1.5 deg, 32 %, 6 %)."""
+    linear velocity comes out near the truth, and the translation direction better, than from
+    two views alone (there: 140 % and 5.4 deg median errors; given it: 5 % and 1.8 deg). The
+    angular velocity stays as poorly observed as without (its prior is as loose)."""
     from rsvo_ros.synth import SequenceRenderer, SynthConfig, project_points
 
     cfg = SynthConfig(frames=10, motion="vehicle", severity=2.0, seed=3)
@@ -170,7 +171,7 @@ def test_frame_interval_centres_the_velocity_prior_on_the_stream_motion():
     rng = np.random.default_rng(0)
     err = {None: [], interval: []}
     for k in range(2, 8):
-        _, R_a, p_a, w_a, v_a, rows_a = renderer.frame_pose(k)
+        _, R_a, p_a, _, v_a, rows_a = renderer.frame_pose(k)
         _, R_b, p_b, _, _, rows_b = renderer.frame_pose(k + 1)
         X_cam = rng.uniform([-5.0, -2.0, 2.0], [5.0, 2.0, 12.0], (600, 3))
         X = X_cam @ R_a.T + p_a
@@ -184,10 +185,8 @@ def test_frame_interval_centres_the_velocity_prior_on_the_stream_motion():
                                          seed=0, frame_interval=fi)  # fmt: skip
             assert res.ok, res.reason
             err[fi].append([angle_between_deg(t, res.t),
-                            np.linalg.norm(res.w_prev - w_a) / np.linalg.norm(w_a),
                             np.linalg.norm(res.v_prev * np.linalg.norm(t) - v_a)
                             / np.linalg.norm(v_a)])  # fmt: skip
     alone, stream = np.median(err[None], axis=0), np.median(err[interval], axis=0)
     assert stream[0] < 0.5 * alone[0]  # translation direction
-    assert stream[1] < 0.5 * alone[1] and stream[1] < 0.6  # angular velocity
-    assert stream[2] < 0.5 * alone[2] and stream[2] < 0.3  # linear velocity
+    assert stream[1] < 0.5 * alone[1] and stream[1] < 0.2  # linear velocity
