@@ -13,10 +13,12 @@ import time
 from pathlib import Path
 
 import rclpy
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 EXIT_OK, EXIT_BAD_BAG, EXIT_USAGE = 0, 1, 2
+ACK_TIMEOUT_S = 5.0  # at the end: how long to wait for the subscribers to acknowledge
 
 
 def message_class(msgtype: str):
@@ -86,6 +88,10 @@ def main(argv: list[str] | None = None) -> int:
                 count += 1
             if not args.loop:
                 break
+        # reliable delivery needs the writer alive until the readers have acknowledged: the
+        # last image was lost now and then when the player exited right after publishing it
+        for pub in pubs.values():
+            pub.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
         print(f"rsvo_play: published {count} messages from {args.bag}")
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
