@@ -108,9 +108,11 @@ def _run_graph(graph: Graph, bag: Path, node_args: list[str], play_args: list[st
 def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_path):
     """Player -> node -> separate subscriber; the trajectory is the offline pipeline's."""
     data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
-                      ["--rate", "0.5"], FRAMES)
+                      ["--rate", "0.25"], FRAMES)
     odom = data["odom"]
-    assert len(odom) == FRAMES, graph.log("node")  # reliable at 15 Hz: every frame
+    # reliable at 7.5 Hz: every frame (a frame dropped while the node was busy would show in
+    # the diagnostics, printed here; a loaded machine can cause that)
+    assert len(odom) == FRAMES, (data["diagnostics"][-1:], graph.log("node"))
     assert {o["frame_id"] for o in odom} == {"odom"}
     assert {o["child"] for o in odom} == {"camera_optical_frame"}
     poses = np.array([o["pose"] for o in odom])
@@ -158,9 +160,9 @@ def test_colcon_installed_node_runs_the_same_graph(graph, small_bag, tmp_path):
     site = next(install.glob("lib/python3*/site-packages"))
     graph.env["PYTHONPATH"] = str(site)
     data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
-                      ["--rate", "0.5"], FRAMES,
+                      ["--rate", "0.25"], FRAMES,
                       node_cmd=[str(install / "lib" / "rsvo_ros" / "rsvo_node")])
-    assert len(data["odom"]) == FRAMES, graph.log("node")
+    assert len(data["odom"]) == FRAMES, (data["diagnostics"][-1:], graph.log("node"))
 
 
 def test_best_effort_publisher_connects(graph, small_bag):
