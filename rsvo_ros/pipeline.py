@@ -193,7 +193,7 @@ class OdometryPipeline:
         pts_prev = undistort_points(pair.pts_prev, self.K, self.D)
         pts_curr = undistort_points(pair.pts_curr, self.K, self.D)
         interval = (stamp_ns - prev_stamp) * 1e-9
-        moving = self.options.motion_prior
+        moving = self.options.motion_prior and self.options.model == "rs"
         try:
             rel = estimate_relative_pose(
                 pts_prev, pts_curr, self.K, self.line_delay, model=self.options.model,
