@@ -5,6 +5,7 @@
 # that rsvo_replay writes. Outputs go to results/replay_table (override with RSVO_TABLE_OUTPUT).
 #   bash launch_scripts/replay_table.sh            # 24 sequences at 640x360 (about 5 minutes)
 #   RSVO_TABLE_HD=1 bash launch_scripts/replay_table.sh   # plus the 1280x720 frame rate
+# It also draws replay_ate.png (the README's docs/replay_ate.png).
 set -euo pipefail
 REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
@@ -62,6 +63,37 @@ for key, rows in groups.items():
     print(f'{key}: RS/GS geometric mean {geo(r):.2f}; <= 0.5 on {sum(x <= 0.5 for x in r)} of {n},'
           f' <= 1.1 on {sum(x <= 1.1 for x in r)} of {n} (--no-motion-prior: {geo(a):.2f};'
           f' <= 0.5 on {sum(x <= 0.5 for x in a)} of {n})')
+"
+
+# the same figures as a picture: ATE per sequence, log scale
+printf '%s\n' "${rows[@]}" | python -c "
+import sys
+import matplotlib
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt
+import numpy as np
+names, ates = [], []
+for line in sys.stdin:
+    cells = line.split('|')
+    opts = cells[1].split()
+    name = 's' + opts[opts.index('--severity') + 1] + '/' + opts[opts.index('--seed') + 1]
+    names.append(name + (' LD0' if '--line-delay' in opts else ''))
+    ates.append([float(cells[i].split()[0]) for i in (2, 3, 5)])
+ates = np.array(ates)
+x = np.arange(len(names))
+fig, ax = plt.subplots(figsize=(12, 4))
+for j, (label, colour) in enumerate([('RS', 'tab:red'), ('GS', 'tab:blue'),
+                                     ('RS --no-motion-prior', 'tab:orange')]):
+    ax.bar(x + (j - 1) * 0.27, ates[:, j], 0.27, label=label, color=colour)
+ax.set_yscale('log')
+ax.set_xticks(x, names, rotation=60, fontsize=8)
+ax.set_ylabel('ATE after Sim(3) (m)')
+ax.set_title('rsvo_replay on synthetic vehicle bags (severity/seed; LD0: line delay 0)')
+ax.grid(axis='y', alpha=0.3)
+ax.legend()
+fig.tight_layout()
+fig.savefig('$OUT/replay_ate.png', dpi=100)
+print('plot: $OUT/replay_ate.png')
 "
 
 if [ -n "${RSVO_TABLE_HD:-}" ]; then
