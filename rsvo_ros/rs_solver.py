@@ -27,6 +27,7 @@ CHEIRALITY_POINTS = 100  # points that vote on a hypothesis' depth consistency
 # is no RS distortion, and where it has not by then the RS fit wins anyway
 GS_SELECTION_ITERATIONS = 5
 PRIOR_NOISE_REF_PX = 1.0  # feature noise (px) at which the velocity prior has its full weight
+PRIOR_FOCAL_REF_PX = 1000.0  # focal length at which the prior's scales are given (the bench's)
 
 
 @dataclass
@@ -57,19 +58,21 @@ class LMOptions:
     # With the frames' interval known (a video stream), the prior is centred on the constant
     # velocity of the pair's own motion instead of zero (the paper's source mentions, commented
     # out, taking the velocities from the nearest frames), with these scales of the departure
-    # from it over half the readout, in the units of prior_*: the rotation as loose as there,
-    # the translation 70x tighter (on 16 synthetic vehicle sequences a translation scale of 0.1
-    # to 0.3 did best, 1.0 clearly worse; a rotation scale of 0.03 worse, 0.1 to 1.0 alike).
-    # 0: keep the zero-mean prior.
-    motion_prior_rotation_rad: float = 0.3
-    motion_prior_translation: float = 0.3
+    # from it over half the readout, in the units of prior_* (at a 1000 px focal length): the
+    # translation 130x tighter (on 16 synthetic vehicle sequences at 500 px a translation scale
+    # of 0.05 to 0.15 did best, 0.5 clearly worse; a rotation scale of 0.015 worse, 0.05 to 0.5
+    # alike). 0: keep the zero-mean prior.
+    motion_prior_rotation_rad: float = 0.15
+    motion_prior_translation: float = 0.15
     model_selection_aic: float = 2.0  # GS instead of RS unless the velocities earn this (0: off)
 
 
 def velocity_prior(corr: Correspondences, sigma_rotation_rad: float,
                    sigma_translation: float) -> np.ndarray:
-    """Inverse std (12,) of a zero-mean prior on ``[w_p, v_p, w_c, v_c]`` (see LMOptions)."""
-    s_max = corr.s_max
+    """Inverse std (12,) of a prior on ``[w_p, v_p, w_c, v_c]`` (see LMOptions), in the units
+    of the Sampson errors (pixels) at the focal length ``PRIOR_FOCAL_REF_PX``: it scales with
+    the focal length, so the prior keeps its weight against the residuals at any resolution."""
+    s_max = corr.s_max * corr.focal / PRIOR_FOCAL_REF_PX
     pw, pv = s_max / sigma_rotation_rad, s_max / sigma_translation
     return np.repeat([pw, pv, pw, pv], 3)
 
