@@ -226,7 +226,7 @@ class OdometryPipeline:
         M = _inverse(T_curr_prev)  # the current middle-row camera in the previous one
         # row 0 is exposed row_mid * tau before the middle row: where the frames' middle-row
         # cameras were at those times, interpolated along the motion between them
-        lead = row_mid * tau / max((stamp_ns - prev_stamp) * 1e-9, 1e-9)
+        lead = row_mid * tau / max(interval, 1e-9)
         T_world_mid = self._T_world_mid
         if T_world_mid is None:  # the first pair: place the previous frame's middle row
             T_world_mid = self.T_world_cam @ _inverse(_interpolate(M, -lead))

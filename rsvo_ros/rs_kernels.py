@@ -138,13 +138,11 @@ def _tangent(t):
 
 
 @nb.njit(**JIT, inline="always")
-def _epipolar(R, t, V, xp, xc, sp, sc, cam):
-    """Sampson error (px) of one correspondence and the intermediate terms its Jacobian needs.
-
-    The same algebra as :func:`rsvo_ros.rs_model.sampson_residuals`, one point at a time.
-    ``R`` rows, ``t``, ``V = (w_p, v_p, w_c, v_c)`` and ``cam = (focal, ds_dy)`` are tuples.
-    """
-    focal, kappa = cam
+def _rays(R, t, V, xp, xc, sp, sc):
+    """The two rays of one correspondence in the current reference camera and the baseline
+    between them: ``a = R Rp x_p``, ``b = Rc x_c``, ``T = t + R s_p v_p - s_c v_c`` (with
+    ``Rp = Exp(s_p w_p)``, ``Rc = Exp(s_c w_c)``, their right Jacobians, ``q = Rp x_p`` and
+    ``tp = s_p v_p``), so that ``lam_c b = lam_p a + T``."""
     wp, vp, wc, vc = V
     Rp, Jrp = _exp_jr(_scale(sp, wp))
     Rc, Jrc = _exp_jr(_scale(sc, wc))
@@ -153,6 +151,19 @@ def _epipolar(R, t, V, xp, xc, sp, sc, cam):
     b = _mv(Rc, xc)
     tp = _scale(sp, vp)
     T = _add(_add(t, _mv(R, tp)), _scale(-sc, vc))
+    return Rp, Jrp, Rc, Jrc, q, a, b, tp, T
+
+
+@nb.njit(**JIT, inline="always")
+def _epipolar(R, t, V, xp, xc, sp, sc, cam):
+    """Sampson error (px) of one correspondence and the intermediate terms its Jacobian needs.
+
+    The same algebra as :func:`rsvo_ros.rs_model.sampson_residuals`, one point at a time.
+    ``R`` rows, ``t``, ``V = (w_p, v_p, w_c, v_c)`` and ``cam = (focal, ds_dy)`` are tuples.
+    """
+    focal, kappa = cam
+    wp, vp, wc, vc = V
+    Rp, Jrp, Rc, Jrc, q, a, b, tp, T = _rays(R, t, V, xp, xc, sp, sc)
     g = _cross(T, a)
     h = _cross(b, T)
     n = _dot(b, g)
@@ -494,16 +505,12 @@ def depths_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr):
     lam_c = np.empty((B, N))
     for b in range(B):
         Rr = _rows(R[b])
-        wp, vp, wc, vc = _velocities(vel[b])
+        tt = (t[b, 0], t[b, 1], t[b, 2])
+        V = _velocities(vel[b])
         for i in range(N):
             xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
             xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-            Rp, _ = _exp_jr(_scale(s_prev[i], wp))
-            Rc, _ = _exp_jr(_scale(s_curr[i], wc))
-            a = _mv(Rr, _mv(Rp, xp))
-            bb = _mv(Rc, xc)
-            T = (t[b, 0], t[b, 1], t[b, 2])
-            T = _add(_add(T, _mv(Rr, _scale(s_prev[i], vp))), _scale(-s_curr[i], vc))
+            _, _, _, _, _, a, bb, _, T = _rays(Rr, tt, V, xp, xc, s_prev[i], s_curr[i])
             aa, b2, ab = _dot(a, a), _dot(bb, bb), _dot(a, bb)
             aT, bT = _dot(a, T), _dot(bb, T)
             det = aa * b2 - ab * ab

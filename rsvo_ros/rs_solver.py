@@ -21,7 +21,6 @@ from rsvo_ros.rs_model import (
 
 MAX_STEP_ROTATION_RAD = 0.05  # largest rotation change of one LM step (trust region)
 MAX_STEP_TRANSLATION_RAD = 0.2  # largest change of the translation direction of one step
-VEL = slice(5, 17)  # velocities [w_p, v_p, w_c, v_c] in the 17-vector
 CHEIRALITY_POINTS = 100  # points that vote on a hypothesis' depth consistency
 # LM iterations of the GS alternative of the model selection: it converges in a few where there
 # is no RS distortion, and where it has not by then the RS fit wins anyway
