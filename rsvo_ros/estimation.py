@@ -141,6 +141,19 @@ def _validate(pts_prev, pts_curr, K, line_delay, model) -> tuple[np.ndarray, ...
     return pts_prev, pts_curr, K
 
 
+def _validate_stream(frame_interval: float | None, predicted) -> None:
+    """The video-stream arguments of :func:`estimate_relative_pose`."""
+    if frame_interval is not None and not (np.isfinite(frame_interval) and frame_interval > 0):
+        raise ValueError(f"frame_interval must be finite and > 0 s, got {frame_interval}")
+    if predicted is None:
+        return
+    R, t = (np.asarray(x, float) for x in predicted)
+    if (R.shape != (3, 3) or t.shape != (3,) or not np.isfinite(R).all()
+            or not np.isfinite(t).all() or not np.linalg.norm(t) > 0):  # fmt: skip
+        raise ValueError(f"predicted must be a finite (R (3, 3), t (3,)) with t != 0, got "
+                         f"shapes {R.shape}, {t.shape}")
+
+
 # --------------------------------------------------------------------------- GS baselines
 
 
@@ -307,10 +320,12 @@ def estimate_relative_pose(
 
     Raises:
         ValueError: bad input (too few points, NaN/inf, shape mismatch, singular K, all points
-            identical, unknown model or mode).
+            identical, unknown model or mode, a non-positive frame interval, a non-finite
+            predicted motion).
     """
     t_start = time.perf_counter()
     pts_prev, pts_curr, K = _validate(pts_prev, pts_curr, K, line_delay, model)
+    _validate_stream(frame_interval, predicted)
     if mode not in RS_MODES:
         raise ValueError(f"mode must be one of {RS_MODES}, got {mode!r}")
     ransac = ransac or RansacOptions()
@@ -379,7 +394,7 @@ def estimate_relative_pose(
     else:
         starts = [start] + _gs_starts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed,
                                       min_inliers) + [_rotation_start(corr, R_rot)]
-        if predicted is not None and _usable_motion(*predicted):
+        if predicted is not None:
             starts.append(RSBatch.from_pose(*predicted))
         batch = RSBatch(*(np.concatenate([getattr(s, f) for s in starts])
                           for f in ("R", "t", "vel")))  # fmt: skip
@@ -450,12 +465,6 @@ def _gs_starts(corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacO
         if inl.sum() >= min_inliers and np.linalg.norm(t) > 0:
             starts.append(RSBatch.from_pose(R, t))
     return starts
-
-
-def _usable_motion(R: np.ndarray, t: np.ndarray) -> bool:
-    R, t = np.asarray(R, float), np.asarray(t, float)
-    return (R.shape == (3, 3) and t.shape == (3,) and bool(np.isfinite(R).all())
-            and bool(np.isfinite(t).all()) and float(np.linalg.norm(t)) > 0)  # fmt: skip
 
 
 def _rotation_start(corr: Correspondences, R: np.ndarray) -> RSBatch:

@@ -104,6 +104,8 @@ def _points(rng, n=50):
         ("model", "model must be one of"),
         ("mode", "mode must be one of"),
         ("line_delay", "line_delay"),
+        ("frame_interval", "frame_interval must be finite and > 0"),
+        ("predicted", "predicted must be a finite"),
     ],
 )
 def test_bad_input_raises_a_clear_value_error(rng, case, message):
@@ -131,6 +133,10 @@ def test_bad_input_raises_a_clear_value_error(rng, case, message):
         kwargs["mode"] = "slow"
     elif case == "line_delay":
         kwargs["line_delay"] = -1.0
+    elif case == "frame_interval":
+        kwargs["frame_interval"] = float("nan")
+    elif case == "predicted":
+        kwargs["predicted"] = (np.eye(3), np.array([np.nan, 0.0, 1.0]))
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         estimate_relative_pose(p, c, k, **{"line_delay": 50e-6, **kwargs})
 
