@@ -24,11 +24,11 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "rsvo_node = rsvo_ros.node:main",
-            "rsvo_replay = rsvo_ros.replay:main",
-            "rsvo_synth = rsvo_ros.synth_bag:main",
-            "rsvo_bench = rsvo_ros.bench:main",
-            "rsvo_play = rsvo_ros.play:main",
+            "rsvo_node = rsvo_ros.ros.node:main",
+            "rsvo_replay = rsvo_ros.tools.replay:main",
+            "rsvo_synth = rsvo_ros.tools.synth_bag:main",
+            "rsvo_bench = rsvo_ros.tools.bench:main",
+            "rsvo_play = rsvo_ros.ros.play:main",
         ],
     },
 )

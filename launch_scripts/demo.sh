@@ -19,7 +19,7 @@ rsvo_bench --trials 10 --output "$OUT/bench" "$@"
 
 BAG="$OUT/vehicle_bag"
 rsvo_synth "$BAG" --motion vehicle --severity 2 --frames 60 --overwrite
-LINE_DELAY="$(python -c "from rsvo_ros import bagio; print(bagio.custom_data('$BAG')['rsvo.line_delay'])")"
+LINE_DELAY="$(python -c "from rsvo_ros.ros import bagio; print(bagio.custom_data('$BAG')['rsvo.line_delay'])")"
 for model in rs gs; do
     rsvo_replay "$BAG" --output "$OUT/replay_$model" --model "$model" --overwrite
 done
@@ -35,7 +35,7 @@ for model in rs gs; do
         > "$OUT/node_$model.log" 2>&1 &
     pids+=($!)
     node_pid=$!
-    python -m rsvo_ros.record "$OUT/live_$model.tum" --idle 8 &
+    python -m rsvo_ros.ros.record "$OUT/live_$model.tum" --idle 8 &
     rec_pid=$!
     pids+=($rec_pid)
     for _ in $(seq 1200); do [ -f "$OUT/live_$model.tum.ready" ] && break; sleep 0.1; done
@@ -45,6 +45,6 @@ for model in rs gs; do
     kill -INT "$node_pid" 2>/dev/null || true
     wait "$node_pid" 2>/dev/null || true
 done
-python -m rsvo_ros.compare "$BAG" "RS=$OUT/live_rs.tum" "GS=$OUT/live_gs.tum" \
+python -m rsvo_ros.tools.compare "$BAG" "RS=$OUT/live_rs.tum" "GS=$OUT/live_gs.tum" \
     --plot "$OUT/live_trajectories.png"
 echo "demo outputs: $OUT (bench/bench_boxplot.png, replay_*/trajectory.png, live_trajectories.png)"

@@ -34,7 +34,7 @@ def rng() -> np.random.Generator:
 
 @pytest.fixture(scope="session")
 def paper_scene():
-    from rsvo_ros.paper_scene import PaperScene
+    from rsvo_ros.sim.paper_scene import PaperScene
 
     return PaperScene(seed=0)
 

@@ -1,0 +1,3 @@
+"""The ROS shells: the node, its parameters and message conversion, the bag player, the recorder,
+the latency probe and bag I/O. The only layer that imports rclpy, rosbags or message packages;
+everything here is a thin shell over :mod:`rsvo_ros.odometry`."""

@@ -1,0 +1,105 @@
+"""Message <-> numpy conversions shared by the node (rclpy messages) and the tools (rosbags
+messages).
+
+Both libraries' messages carry the same field names, so the readers here take either; writers
+return plain values that each side puts into its own message class. Pure numpy, OpenCV and
+scipy: nothing here imports rclpy or rosbags.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+SUPPORTED_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8")
+SUPPORTED_DISTORTION_MODELS = ("plumb_bob", "", "none")
+COVARIANCE_UNKNOWN = 1e6  # what a non-finite covariance entry is published as
+
+
+def to_gray(data: np.ndarray, encoding: str, height: int, width: int, step: int) -> np.ndarray:
+    """uint8 (H, W) image from a sensor_msgs/Image payload.
+
+    Raises ValueError naming the problem (unsupported encoding, size/step mismatch, empty).
+    """
+    if encoding not in SUPPORTED_ENCODINGS:
+        raise ValueError(f"unsupported encoding {encoding!r} (supported: "
+                         f"{', '.join(SUPPORTED_ENCODINGS)})")  # fmt: skip
+    if height <= 0 or width <= 0:
+        raise ValueError(f"empty image ({width}x{height})")
+    channels, itemsize = {"mono8": (1, 1), "mono16": (1, 2), "rgb8": (3, 1),
+                          "bgr8": (3, 1)}[encoding]  # fmt: skip
+    row_bytes = width * channels * itemsize
+    if step < row_bytes:
+        raise ValueError(f"step {step} is shorter than a row ({row_bytes} bytes)")
+    buf = np.frombuffer(np.asarray(data, dtype=np.uint8).tobytes(), dtype=np.uint8)
+    if buf.size < step * height:
+        raise ValueError(f"image data has {buf.size} bytes, {step * height} expected "
+                         f"({width}x{height}, step {step})")  # fmt: skip
+    rows = buf[: step * height].reshape(height, step)[:, :row_bytes]
+    if encoding == "mono8":
+        return np.ascontiguousarray(rows)
+    if encoding == "mono16":
+        return (rows.copy().view("<u2").reshape(height, width) >> 8).astype(np.uint8)
+    img = rows.reshape(height, width, 3)
+    code = cv2.COLOR_RGB2GRAY if encoding == "rgb8" else cv2.COLOR_BGR2GRAY
+    return cv2.cvtColor(np.ascontiguousarray(img), code)
+
+
+def image_to_gray(msg) -> np.ndarray:
+    """uint8 (H, W) of a sensor_msgs/Image (rclpy or rosbags); ValueError as :func:`to_gray`."""
+    return to_gray(msg.data, msg.encoding, msg.height, msg.width, msg.step)
+
+
+def stamp_ns(header) -> int:
+    """Integer nanoseconds of a std_msgs/Header's stamp."""
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+@dataclass
+class CameraIntrinsics:
+    """What the pipeline needs of a sensor_msgs/CameraInfo: ``K`` (3, 3), ``D`` (plumb_bob
+    coefficients, None when there is no distortion) and the image size (0 when unset)."""
+
+    K: np.ndarray
+    D: np.ndarray | None
+    width: int
+    height: int
+
+
+def camera_from_info(msg) -> CameraIntrinsics:
+    """:class:`CameraIntrinsics` of a sensor_msgs/CameraInfo (rclpy or rosbags).
+
+    Raises ValueError for a non-finite or non-positive focal length and for a distortion model
+    other than ``plumb_bob`` (or none) with non-zero coefficients.
+    """
+    K = np.asarray(msg.k, float).reshape(3, 3)
+    D = np.asarray(msg.d, float)
+    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError("camera info with an invalid K (non-finite or non-positive focal "
+                         "length)")
+    if msg.distortion_model not in SUPPORTED_DISTORTION_MODELS and np.any(D):
+        raise ValueError(f"unsupported distortion model {msg.distortion_model!r}")
+    return CameraIntrinsics(K, D if np.any(D) else None, int(msg.width), int(msg.height))
+
+
+def pose_components(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (3,) and unit quaternion ``quat_xyzw`` (4,) of a (4, 4) ``T`` (geometry_msgs
+    order)."""
+    return np.asarray(T[:3, 3], float), Rotation.from_matrix(T[:3, :3]).as_quat()
+
+
+def fill_pose(pose, T: np.ndarray) -> None:
+    """Write ``T`` into a geometry_msgs/Pose (any library whose fields can be assigned)."""
+    p, q = pose_components(T)
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in p)
+    pose.orientation.x, pose.orientation.y = float(q[0]), float(q[1])
+    pose.orientation.z, pose.orientation.w = float(q[2]), float(q[3])
+
+
+def covariance_for_msg(cov: np.ndarray) -> np.ndarray:
+    """(36,) float covariance for a message: non-finite entries become ``COVARIANCE_UNKNOWN``."""
+    cov = np.asarray(cov, float)
+    return np.where(np.isfinite(cov), cov, COVARIANCE_UNKNOWN).ravel()

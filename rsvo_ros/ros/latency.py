@@ -1,0 +1,99 @@
+"""Measure a running rsvo_node: end-to-end latency and the input rate it sustains.
+
+    python -m rsvo_ros.ros.latency --rate 15 --resolution 1280x720 --frames 90
+
+Publishes rendered rolling-shutter frames (and camera info) stamped with the wall clock at the
+given rate, subscribes to ``/rsvo/odom`` and reports, per run: frames sent, odometry received
+(the node drops frames it cannot keep up with and counts them), and the latency from the image
+stamp to the odometry's arrival (median, p95). Start the node first, e.g.
+``rsvo_node --ros-args -p model:=gs -p line_delay:=5e-5``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m rsvo_ros.ros.latency", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rate", type=float, nargs="+", default=[15.0], help="input rates (Hz)")
+    p.add_argument("--resolution", default="1280x720")
+    p.add_argument("--frames", type=int, default=60, help="frames per rate")
+    p.add_argument("--motion", default="vehicle")
+    p.add_argument("--json", default=None, help="also write the results here")
+    args = p.parse_args(argv)
+    w, h = (int(x) for x in args.resolution.split("x"))
+
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
+
+    renderer = SequenceRenderer(SynthConfig(frames=args.frames, motion=args.motion, width=w,
+                                            height=h))  # fmt: skip
+    images = [f.image.tobytes() for f in renderer]  # render first: publishing must keep time
+    rclpy.init()
+    node = rclpy.create_node("rsvo_latency")
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    pub_img = node.create_publisher(Image, "/camera/image_raw", qos)
+    pub_info = node.create_publisher(CameraInfo, "/camera/camera_info", qos)
+    got: dict[int, float] = {}
+    node.create_subscription(
+        Odometry, "/rsvo/odom",
+        lambda m: got.setdefault(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
+                                 time.time()), qos)  # fmt: skip
+    t_end = time.monotonic() + 30
+    while time.monotonic() < t_end and (pub_img.get_subscription_count() == 0
+                                        or node.count_publishers("/rsvo/odom") == 0):
+        rclpy.spin_once(node, timeout_sec=0.05)
+    t_settle = time.monotonic() + 2.0
+    while time.monotonic() < t_settle:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    results = []
+    for rate in args.rate:
+        got.clear()
+        sent = []
+        t0 = time.monotonic()
+        for k, data in enumerate(images):
+            due = t0 + k / rate
+            while time.monotonic() < due:
+                rclpy.spin_once(node, timeout_sec=max(0.0, min(0.005, due - time.monotonic())))
+            ns = time.time_ns()
+            info = CameraInfo()
+            info.header.stamp.sec, info.header.stamp.nanosec = ns // 10**9, ns % 10**9
+            info.width, info.height = w, h
+            info.k = [float(x) for x in renderer.K.ravel()]
+            img = Image()
+            img.header = info.header
+            img.height, img.width, img.encoding, img.step, img.data = h, w, "mono8", w, data
+            pub_info.publish(info)
+            pub_img.publish(img)
+            sent.append(ns)
+        t_drain = time.monotonic() + 5.0
+        while time.monotonic() < t_drain:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        lat = np.array([(got[s] - s / 1e9) * 1e3 for s in sent if s in got])
+        row = {"rate_hz": rate, "resolution": args.resolution, "sent": len(sent),
+               "odometry": len(lat),
+               "latency_ms_median": float(np.median(lat)) if len(lat) else None,
+               "latency_ms_p95": float(np.percentile(lat, 95)) if len(lat) else None}
+        results.append(row)
+        print(json.dumps(row))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,322 @@
+"""rsvo_node: the live ROS 2 node (rclpy). A thin shell over :class:`OdometryPipeline`.
+
+Wiring only: it subscribes to images and camera info, hands the newest image to the pipeline on
+a worker thread (frames that arrive while it is busy are dropped and counted, never queued),
+and publishes ``nav_msgs/Odometry``, a bounded ``nav_msgs/Path``, a debug image and
+diagnostics. Parameters live in :mod:`rsvo_ros.ros.params`, message conversion in
+:mod:`rsvo_ros.ros.convert`.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections import deque
+
+import cv2
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.exceptions import InvalidParameterTypeException, ParameterException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
+
+from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions
+from rsvo_ros.odometry.tracker import TrackerOptions
+from rsvo_ros.ros.convert import (
+    camera_from_info,
+    covariance_for_msg,
+    fill_pose,
+    image_to_gray,
+    stamp_ns,
+)
+from rsvo_ros.ros.params import PARAMETERS, help_text, read_config
+from rsvo_ros.twoview.estimator import warm_up
+
+QOS_WAIT_S = 10.0  # auto QoS: wait this long for a publisher, then subscribe best effort
+
+
+class RsvoNode(Node):
+    """The ROS shell: parameters, QoS, message conversion, publishing."""
+
+    def __init__(self, **kwargs):
+        super().__init__("rsvo_node", **kwargs)
+        for name, (default, desc) in PARAMETERS.items():
+            self.declare_parameter(name, default, desc)
+        self.p = read_config({name: self.get_parameter(name).value for name in PARAMETERS})
+        self.T_base_cam = self.p.T_base_cam
+        # before anything is advertised: the first run after an install compiles the solver
+        self.get_logger().info("loading the solver kernels (the first run after an install "
+                               "compiles them: about half a minute)")
+        self.get_logger().info(f"solver ready in {warm_up():.1f} s")
+        self._lock = threading.Lock()
+        self._pending: tuple | None = None
+        self._waiting: tuple | None = None  # the newest image that came before camera info
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._camera: tuple | None = None
+        self.pipeline: OdometryPipeline | None = None
+        self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
+                      "held": 0}  # fmt: skip
+        self._bad_kinds: set[str] = set()
+        self._recv_times: deque = deque(maxlen=100)
+        self._proc_ms: deque = deque(maxlen=100)
+        self._last_inlier_ratio = 0.0
+        self._state = "waiting for camera info"
+        self._path: deque = deque(maxlen=int(self.p["path_max_length"]))
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_odom = self.create_publisher(Odometry, self.p["odom_topic"], reliable)
+        self.pub_path = self.create_publisher(Path, self.p["path_topic"], reliable)
+        self.pub_debug = self.create_publisher(Image, self.p["debug_image_topic"],
+                                               qos_profile_sensor_data)  # fmt: skip
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_service(Trigger, "/rsvo/reset", self._on_reset)
+        self.sub_info = self.create_subscription(CameraInfo, self.p["camera_info_topic"],
+                                                 self._on_info, qos_profile_sensor_data)
+        self.sub_image = None
+        self._qos_deadline = time.monotonic() + QOS_WAIT_S
+        if self.p["image_qos_reliability"] == "auto":
+            self._qos_timer = self.create_timer(0.2, self._try_subscribe_images)
+        else:
+            self._subscribe_images(self.p["image_qos_reliability"] == "reliable")
+        self.create_timer(float(self.p["diagnostics_period_s"]), self._publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name="rsvo_worker", daemon=True)
+        self._worker.start()
+
+    # ------------------------------------------------------------------ set-up
+
+    def _try_subscribe_images(self) -> None:
+        infos = self.get_publishers_info_by_topic(self.p["image_topic"])
+        if infos:
+            reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
+        elif time.monotonic() < self._qos_deadline:
+            return
+        else:
+            reliable = False  # best effort connects to both kinds of publisher
+        self._qos_timer.cancel()
+        self._subscribe_images(reliable)
+
+    def _subscribe_images(self, reliable: bool) -> None:
+        qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE if reliable
+                         else ReliabilityPolicy.BEST_EFFORT)  # fmt: skip
+        self.sub_image = self.create_subscription(Image, self.p["image_topic"], self._on_image,
+                                                  qos)  # fmt: skip
+        self.get_logger().info(f"subscribed to {self.p['image_topic']} "
+                               f"({'reliable' if reliable else 'best effort'})")
+
+    # ------------------------------------------------------------------ callbacks
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        try:
+            cam = camera_from_info(msg)
+        except ValueError as exc:
+            self._bad(str(exc))
+            return
+        self._camera = (cam.K, cam.D, cam.width, cam.height)
+        if self.pipeline is None:  # build it now, not on the first image (keeps that one fast)
+            with self._lock:
+                self._ensure_pipeline()
+                if self._waiting is not None and self._pending is None:
+                    self._pending, self._waiting = self._waiting, None
+                    self._wake.set()
+
+    def _on_image(self, msg: Image) -> None:
+        self._recv_times.append(time.monotonic())
+        with self._lock:
+            self.stats["received"] += 1
+            if self._pending is not None:
+                self.stats["dropped"] += 1  # the worker is busy: keep only the newest
+            self._pending = (msg, time.monotonic())
+        self._wake.set()
+
+    def _on_reset(self, request, response):
+        with self._lock:
+            if self.pipeline is not None:
+                self.pipeline.reset()
+            self._path.clear()
+        response.success = True
+        response.message = "odometry reset: the next frame is the new origin"
+        self.get_logger().info(response.message)
+        return response
+
+    def _ensure_pipeline(self) -> None:
+        """Create the pipeline once the camera is known (call with the lock held)."""
+        if self.pipeline is not None or self._camera is None:
+            return
+        K, D, _, _ = self._camera
+        opts = PipelineOptions(model=self.p["model"],
+                               tracker=TrackerOptions(max_features=int(self.p["max_features"])),
+                               motion_prior=bool(self.p["motion_prior"]))
+        opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
+        opts.lm.max_iterations = int(self.p["lm_max_iterations"])
+        self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)
+
+    def _bad(self, kind: str) -> None:
+        self.stats["bad"] += 1
+        if kind not in self._bad_kinds:
+            self._bad_kinds.add(kind)
+            self.get_logger().warning(f"skipping bad input: {kind} (logged once per kind)")
+
+    # ------------------------------------------------------------------ processing
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            if not self._wake.wait(timeout=0.2):
+                continue
+            with self._lock:
+                item, self._pending = self._pending, None
+                self._wake.clear()
+            if item is None:
+                continue
+            try:
+                self._process(*item)
+            except Exception as exc:  # noqa: BLE001 - the node must keep going
+                self._bad(f"processing error: {type(exc).__name__}: {exc}")
+
+    def _process(self, msg: Image, t_recv: float) -> None:
+        if self._camera is None:
+            # keep the newest image until the camera info arrives (drivers and bags often send
+            # an image just before its camera info); an older waiting one cannot be used
+            with self._lock:
+                if self._waiting is not None:
+                    self._bad(f"no camera info on {self.p['camera_info_topic']} yet")
+                self._waiting = (msg, t_recv)
+            return
+        try:
+            gray = image_to_gray(msg)
+        except ValueError as exc:
+            self._bad(str(exc).split(" (")[0])
+            return
+        K, D, w, h = self._camera
+        if w and h and (gray.shape[1], gray.shape[0]) != (w, h):
+            self._bad("image size differs from camera info")
+            return
+        t0 = time.perf_counter()
+        with self._lock:
+            self._ensure_pipeline()
+            self.pipeline.set_camera(K, D, float(self.p["line_delay"]))
+            res = self.pipeline.process(stamp_ns(msg.header), gray)
+        self._proc_ms.append((time.perf_counter() - t0) * 1e3)
+        self.stats["processed"] += 1
+        if res.status == "skipped":
+            self.stats["skipped"] += 1
+            self._bad(res.reason.split(" (")[0])
+            return
+        if res.status == "held":
+            self.stats["held"] += 1
+        self._state = {"first": "initialised", "posed": "tracking",
+                       "held": f"holding: {res.reason}"}[res.status]  # fmt: skip
+        self._last_inlier_ratio = res.inlier_ratio
+        self._publish(msg, res, gray)
+
+    def _publish(self, msg: Image, res: FrameResult, gray: np.ndarray) -> None:
+        T = res.T_world_cam
+        child = self.p["camera_frame"]
+        if self.p["base_frame"]:
+            T = self.T_base_cam @ T @ np.linalg.inv(self.T_base_cam)
+            child = self.p["base_frame"]
+        odom = Odometry()
+        odom.header.stamp = msg.header.stamp
+        odom.header.frame_id = self.p["odom_frame"]
+        odom.child_frame_id = child
+        fill_pose(odom.pose.pose, T)
+        odom.pose.covariance = [float(x) for x in covariance_for_msg(res.covariance)]
+        self.pub_odom.publish(odom)
+        ps = PoseStamped()
+        ps.header = odom.header
+        ps.pose = odom.pose.pose
+        self._path.append(ps)
+        path = Path()
+        path.header = odom.header
+        path.poses = list(self._path)
+        self.pub_path.publish(path)
+        if self.p["publish_debug_image"] and self.pub_debug.get_subscription_count() > 0:
+            self.pub_debug.publish(_debug_image(msg, gray, res))
+
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        times = [t for t in self._recv_times if now - t < 5.0]
+        rate = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0
+        st = DiagnosticStatus()
+        st.name = "rsvo_node: odometry"
+        st.hardware_id = self.p["camera_frame"]
+        bad_recent = self.stats["bad"] > 0
+        st.level = DiagnosticStatus.OK if not bad_recent else DiagnosticStatus.WARN
+        st.message = self._state
+        vals = {
+            "input_rate_hz": f"{rate:.2f}",
+            "processing_time_ms_median": f"{np.median(self._proc_ms):.1f}" if self._proc_ms
+            else "n/a",
+            "inlier_ratio": f"{self._last_inlier_ratio:.3f}",
+            **{k: str(v) for k, v in self.stats.items()},
+            "model": self.p["model"], "line_delay": str(self.p["line_delay"]),
+        }  # fmt: skip
+        st.values = [KeyValue(key=k, value=v) for k, v in vals.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [st]
+        self.pub_diag.publish(arr)
+
+    def destroy_node(self):
+        self._stop.set()
+        self._wake.set()
+        self._worker.join(timeout=5.0)
+        return super().destroy_node()
+
+
+def _debug_image(msg: Image, gray: np.ndarray, res: FrameResult) -> Image:
+    """Tracks as in the paper's Fig. 1: inliers green, outliers red, with their displacement."""
+    img = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    rel = res.relative
+    if res.pts_prev is not None and res.pts_curr is not None:
+        inl = rel.inliers if rel is not None and len(rel.inliers) == len(res.pts_curr) else \
+            np.zeros(len(res.pts_curr), bool)
+        for p0, p1, ok in zip(res.pts_prev, res.pts_curr, inl, strict=True):
+            color = (0, 200, 0) if ok else (0, 0, 255)
+            a = (int(round(p0[0])), int(round(p0[1])))
+            b = (int(round(p1[0])), int(round(p1[1])))
+            cv2.line(img, a, b, color, 1)
+            cv2.circle(img, b, 2, color, -1)
+    cv2.putText(img, f"{res.status} inliers {100 * res.inlier_ratio:.0f}%", (8, 20),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 0), 1)
+    out = Image()
+    out.header = msg.header
+    out.height, out.width = img.shape[:2]
+    out.encoding = "bgr8"
+    out.step = img.shape[1] * 3
+    out.data = img.tobytes()
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv if argv is None else argv
+    if any(a in ("-h", "--help") for a in args[1:]):
+        print(help_text())
+        return 0
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = RsvoNode()
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        executor.spin()
+    except (ValueError, ParameterException, InvalidParameterTypeException) as exc:
+        print(f"rsvo_node: invalid parameter: {exc}", file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""rsvo_node's parameters: names, defaults, descriptions and ranges, and their validation.
+
+Each parameter is declared with a ``ParameterDescriptor`` (description, type, range), as
+image_tools does; :func:`read_config` turns the declared values into a checked
+:class:`NodeConfig` or raises ``ValueError`` naming the parameter (the node then exits 2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+)
+from scipy.spatial.transform import Rotation
+
+from rsvo_ros.twoview.estimator import MODELS
+
+QOS_CHOICES = ("auto", "reliable", "best_effort")
+
+
+def _float(desc, lo, hi, step=0.0):
+    return ParameterDescriptor(description=desc, type=ParameterType.PARAMETER_DOUBLE,
+                               floating_point_range=[FloatingPointRange(
+                                   from_value=lo, to_value=hi, step=step)])  # fmt: skip
+
+
+def _int(desc, lo, hi):
+    return ParameterDescriptor(description=desc, type=ParameterType.PARAMETER_INTEGER,
+                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
+
+
+def _str(desc, choices=None):
+    extra = f" One of: {', '.join(choices)}." if choices else ""
+    return ParameterDescriptor(description=desc + extra, type=ParameterType.PARAMETER_STRING,
+                               additional_constraints=extra.strip())  # fmt: skip
+
+
+def _bool(desc):
+    return ParameterDescriptor(description=desc, type=ParameterType.PARAMETER_BOOL)
+
+
+PARAMETERS = {
+    "image_topic": ("/camera/image_raw", _str("Input sensor_msgs/Image topic.")),
+    "camera_info_topic": ("/camera/camera_info", _str("Input sensor_msgs/CameraInfo topic.")),
+    "odom_topic": ("/rsvo/odom", _str("Output nav_msgs/Odometry topic.")),
+    "path_topic": ("/rsvo/path", _str("Output nav_msgs/Path topic.")),
+    "debug_image_topic": ("/rsvo/debug_image", _str("Output debug image (tracks, inliers).")),
+    "line_delay": (0.0, _float("Seconds per image row (rolling-shutter line delay, tau); "
+                               "0 for a global shutter.", 0.0, 1e-3)),
+    "model": ("rs", _str("Relative pose model.", MODELS)),
+    "max_features": (500, _int("Tracked corners (paper: 500).", 20, 5000)),
+    "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
+    "motion_prior": (True, _bool(
+        "RS: centre the velocity prior on the constant velocity of each frame pair's motion "
+        "(from the image stamps) and start the search also from the previous pair's motion. "
+        "False: each pair on its own, as in the paper.")),
+    "lm_max_iterations": (30, _int("Levenberg-Marquardt iterations of the refinements.", 1,
+                                   500)),
+    "odom_frame": ("odom", _str("frame_id of the odometry and path.")),
+    "camera_frame": ("camera_optical_frame", _str("The camera's optical frame id.")),
+    "base_frame": ("", _str("If set, odometry is published for this frame (child_frame_id) "
+                            "using base_to_camera.")),
+    "base_to_camera": ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                       ParameterDescriptor(description="Fixed T_base_camera as [x, y, z, qx, "
+                                           "qy, qz, qw] (m, unit quaternion).",
+                                           type=ParameterType.PARAMETER_DOUBLE_ARRAY)),
+    "path_max_length": (1000, _int("Poses kept in the published path.", 1, 100000)),
+    "image_qos_reliability": ("auto", _str("Image subscription reliability; auto matches the "
+                                           "publisher as rosbag2's recorder does.",
+                                           QOS_CHOICES)),
+    "publish_debug_image": (True, _bool("Publish the debug image.")),
+    "diagnostics_period_s": (1.0, _float("Diagnostics publishing period (s).", 0.1, 60.0)),
+}
+
+
+@dataclass
+class NodeConfig:
+    """The checked parameter values; ``T_base_cam`` (4, 4) from ``base_to_camera``."""
+
+    values: dict
+    T_base_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def __getitem__(self, name: str):
+        return self.values[name]
+
+
+def read_config(values: dict) -> NodeConfig:
+    """Check the declared values (ranges are enforced by rclpy already); ``ValueError`` names
+    the parameter that is wrong."""
+    p = values
+    if p["model"] not in MODELS:
+        raise ValueError(f"parameter model must be one of {MODELS}, got {p['model']!r}")
+    if p["image_qos_reliability"] not in QOS_CHOICES:
+        raise ValueError(f"parameter image_qos_reliability must be one of {QOS_CHOICES}, "
+                         f"got {p['image_qos_reliability']!r}")  # fmt: skip
+    tf = np.asarray(p["base_to_camera"], float)
+    if tf.shape != (7,) or not np.isfinite(tf).all() or abs(np.linalg.norm(tf[3:]) - 1) > 1e-3:
+        raise ValueError("parameter base_to_camera must be [x, y, z, qx, qy, qz, qw] with a "
+                         f"unit quaternion, got {list(tf)}")  # fmt: skip
+    for topic in ("image_topic", "camera_info_topic", "odom_topic", "path_topic"):
+        if not p[topic]:
+            raise ValueError(f"parameter {topic} must not be empty")
+    T_base_cam = np.eye(4)
+    T_base_cam[:3, :3] = Rotation.from_quat(tf[3:]).as_matrix()
+    T_base_cam[:3, 3] = tf[:3]
+    return NodeConfig(dict(values), T_base_cam)
+
+
+def help_text() -> str:
+    """``rsvo_node --help``: every parameter with its default and description."""
+    lines = ["usage: rsvo_node [--ros-args -p name:=value ...]", "", "parameters:"]
+    for name, (default, desc) in PARAMETERS.items():
+        lines.append(f"  {name} (default {default!r}): {desc.description}")
+    return "\n".join(lines)

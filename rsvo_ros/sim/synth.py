@@ -1,0 +1,386 @@
+"""Synthetic rolling-shutter image sequences with exact ground truth.
+
+Pure numpy + OpenCV. The world is a textured corridor that follows the paper's ~80 m loop
+(two elliptic-cylinder walls, a floor and a ceiling); every image row ``r`` is rendered from the
+camera pose at ``stamp + r * line_delay`` (per-row pose, per-pixel ray/surface intersection,
+texture lookup with ``cv2.remap``), so the images carry true rolling-shutter distortion.
+
+Motions (``MOTIONS``):
+- ``paper``: the paper's setting (Sec. 7.1): the smooth loop sampled at 5 Hz, each frame with
+  its own random instantaneous RS velocity at level 1-6; rows follow the RS model of
+  CONTRACTS.md exactly: ``X_row0 = Exp(r tau w) X_row_r + r tau v``.
+- ``handheld`` / ``vehicle``: a continuous 30 Hz camera walking (1.4 m/s) or driving (8 m/s)
+  along the loop, shaken by hand tremor or road vibration; ``severity`` scales the shaking.
+  Rows follow the continuous trajectory; the frame's (w, v) ground truth is its instantaneous
+  velocity at the row-0 time.
+Conventions: world frame y down (the loop lies in x-z), camera optical frame, poses
+``T_world_camera`` at row-0 times, velocities in the row-0 camera frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from rsvo_ros.core.geometry import project_rs_rows, so3_exp, so3_log
+from rsvo_ros.sim import paper_scene
+
+MOTIONS = ("paper", "handheld", "vehicle")
+FRAME_RATE_HZ = {"paper": paper_scene.FRAME_RATE_HZ, "handheld": 30.0, "vehicle": 30.0}
+SPEED_M_S = {"handheld": 1.4, "vehicle": 8.0}
+REFERENCE_READOUT_S = 720 * paper_scene.LINE_DELAY  # 36 ms: the paper's 720 rows x 50 us
+CORRIDOR_HALF_WIDTH_M = 3.0
+CAMERA_HEIGHT_M = 1.5  # above the floor (the floor is at y = loop height + 1.5, y down)
+CEILING_HEIGHT_M = 4.0  # above the floor
+TEXTURE_SIZE = 1024  # texels per side of each (tiling) texture
+TEXELS_PER_M = 160.0
+
+RowPoseFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def default_line_delay(height: int) -> float:
+    """Seconds per row giving the paper's 36 ms readout at any image height."""
+    return REFERENCE_READOUT_S / height
+
+
+def intrinsics(width: int, height: int) -> np.ndarray:
+    """The paper's 1000 px focal length at 1280 px width, scaled to ``width``."""
+    return paper_scene.intrinsics(paper_scene.FOCAL_PX * width / paper_scene.IMAGE_WIDTH,
+                                  width, height)
+
+
+# --------------------------------------------------------------------------- textures
+
+
+def make_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """A tiling, corner-rich grayscale texture (float32, 0..255): multi-scale noise plus
+    random rectangles, discs and lines, so that a tracker finds features everywhere."""
+    tex = np.zeros((size, size), np.float32)
+    for cells, amp in ((4, 60.0), (16, 45.0), (64, 30.0), (256, 15.0)):
+        coarse = rng.uniform(-1.0, 1.0, (cells, cells)).astype(np.float32)
+        tiled = np.tile(coarse, (3, 3))  # resize a 3x3 tiling and crop: seamless
+        big = cv2.resize(tiled, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)
+        tex += amp * big[size:2 * size, size:2 * size]
+    canvas = np.zeros((size, size), np.float32)
+    for _ in range(int(size * size / 2500)):
+        kind = rng.integers(3)
+        c = tuple(int(x) for x in rng.integers(0, size, 2))
+        val = float(rng.uniform(-110, 110))
+        if kind == 0:
+            s = rng.integers(6, 40, 2)
+            cv2.rectangle(canvas, c, (c[0] + int(s[0]), c[1] + int(s[1])), val, -1)
+        elif kind == 1:
+            cv2.circle(canvas, c, int(rng.integers(3, 18)), val, -1)
+        else:
+            d = rng.integers(-40, 40, 2)
+            cv2.line(canvas, c, (c[0] + int(d[0]), c[1] + int(d[1])), val, int(rng.integers(2, 5)))
+    tex += cv2.GaussianBlur(canvas, (0, 0), 1.0)
+    return np.clip(tex + 128.0, 0.0, 255.0)
+
+
+@dataclass
+class CorridorScene:
+    """Walls, floor and ceiling of a corridor along the paper's loop, each with a texture.
+
+    Walls: elliptic cylinders ``((x-cx)/A)^2 + ((z-cz)/B)^2 = 1`` with the loop's semi-axes
+    minus / plus the half width (inner / outer). Texture coordinates in metres: walls
+    (arc parameter, height), floor and ceiling (x, z).
+    """
+
+    textures: list[np.ndarray]
+    centre: tuple[float, float] = (paper_scene.LOOP_START[0] + paper_scene.LOOP_SEMI_AXES_M[0],
+                                   paper_scene.LOOP_START[2])  # fmt: skip
+    semi_axes: tuple[float, float] = paper_scene.LOOP_SEMI_AXES_M
+    half_width: float = CORRIDOR_HALF_WIDTH_M
+    floor_y: float = float(paper_scene.LOOP_START[1]) + CAMERA_HEIGHT_M
+    ceiling_y: float = float(paper_scene.LOOP_START[1]) + CAMERA_HEIGHT_M - CEILING_HEIGHT_M
+
+    @staticmethod
+    def create(seed: int) -> CorridorScene:
+        rng = np.random.default_rng([seed, 7])
+        return CorridorScene([make_texture(rng) for _ in range(4)])
+
+    def wall_axes(self, which: int) -> tuple[float, float]:
+        a, b = self.semi_axes
+        sign = -1.0 if which == 0 else 1.0
+        return a + sign * self.half_width, b + sign * self.half_width
+
+    def render(self, R_rows: np.ndarray, p_rows: np.ndarray, K: np.ndarray, width: int,
+               height: int) -> np.ndarray:
+        """uint8 (height, width) image; row ``r`` seen from ``(R_rows[r], p_rows[r])``
+        (``T_world_camera`` of that row)."""
+        f32 = np.float32
+        Kinv = np.linalg.inv(K)
+        a = (Kinv[0, 0] * np.arange(width) + Kinv[0, 2]).astype(f32)[None, :]  # x of a column
+        b = Kinv[1, 1] * np.arange(height) + Kinv[1, 2]  # y of a row
+        # world ray of pixel (r, c): R_r (a_c, b_r, 1) = a_c R_r[:, 0] + b_r R_r[:, 1] + R_r[:, 2]
+        X = R_rows[:, :, 0].astype(f32)
+        W = (b[:, None] * R_rows[:, :, 1] + R_rows[:, :, 2]).astype(f32)
+        d = [a * X[:, i:i + 1] + W[:, i:i + 1] for i in range(3)]  # (H, W) each
+        o = [p_rows[:, i:i + 1].astype(f32) for i in range(3)]  # (H, 1) each
+        best = np.full((height, width), np.inf, f32)
+        surf = np.full((height, width), -1, np.int8)
+        tex_s = np.zeros((height, width), f32)
+        tex_t = np.zeros((height, width), f32)
+        cx, cz = self.centre
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            for which in (0, 1):  # inner wall (camera outside it), outer wall (camera inside)
+                A, B = self.wall_axes(which)
+                ox, oz = (o[0] - cx) / A, (o[2] - cz) / B
+                dx, dz = d[0] / A, d[2] / B
+                qa = dx * dx + dz * dz
+                qb = ox * dx + oz * dz
+                qc = ox * ox + oz * oz - 1.0
+                disc = qb * qb - qa * qc
+                root = np.sqrt(np.maximum(disc, 0.0))
+                lam = (-qb - root) / qa if which == 0 else (-qb + root) / qa
+                hit = (disc > 0) & (lam > 1e-3) & (lam < best)
+                lam_h = lam[hit]
+                px = np.broadcast_to(o[0], lam.shape)[hit] + lam_h * d[0][hit]
+                pz = np.broadcast_to(o[2], lam.shape)[hit] + lam_h * d[2][hit]
+                best[hit] = lam_h
+                surf[hit] = which
+                tex_s[hit] = np.arctan2((pz - cz) / B, (px - cx) / A) * 0.5 * (A + B)
+                tex_t[hit] = np.broadcast_to(o[1], lam.shape)[hit] + lam_h * d[1][hit]
+            for which, y0 in ((2, self.floor_y), (3, self.ceiling_y)):
+                lam = (y0 - o[1]) / d[1]
+                hit = (lam > 1e-3) & (lam < best)
+                lam_h = lam[hit]
+                best[hit] = lam_h
+                surf[hit] = which
+                tex_s[hit] = np.broadcast_to(o[0], lam.shape)[hit] + lam_h * d[0][hit]
+                tex_t[hit] = np.broadcast_to(o[2], lam.shape)[hit] + lam_h * d[2][hit]
+        img = np.zeros((height, width), f32)
+        map_x = np.mod(tex_s * TEXELS_PER_M, TEXTURE_SIZE).astype(f32)
+        map_y = np.mod(tex_t * TEXELS_PER_M, TEXTURE_SIZE).astype(f32)
+        for which, tex in enumerate(self.textures):
+            mask = surf == which
+            if not mask.any():
+                continue
+            sample = cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+            img[mask] = sample[mask]
+        return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+    def surface_points(self, which: int, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """World points (N, 3) at texture coordinates (metres) of surface ``which``
+        (0 inner wall, 1 outer wall, 2 floor, 3 ceiling): the inverse of the texture mapping."""
+        s, t = np.broadcast_arrays(np.asarray(s, float), np.asarray(t, float))
+        cx, cz = self.centre
+        if which in (0, 1):
+            A, B = self.wall_axes(which)
+            theta = s / (0.5 * (A + B))
+            return np.stack([cx + A * np.cos(theta), t, cz + B * np.sin(theta)], axis=-1)
+        y0 = self.floor_y if which == 2 else self.ceiling_y
+        return np.stack([s, np.full_like(s, y0), t], axis=-1)
+
+
+# --------------------------------------------------------------------------- trajectories
+
+
+def _loop_point(theta: np.ndarray, lateral: np.ndarray | float = 0.0):
+    """Position and unit tangent on the loop at parameter theta (ellipse), shifted sideways."""
+    a, b = paper_scene.LOOP_SEMI_AXES_M
+    c = paper_scene.LOOP_START
+    p = np.stack([c[0] + a * (1 - np.cos(theta)), np.full_like(theta, c[1]),
+                  c[2] + b * np.sin(theta)], axis=-1)  # fmt: skip
+    tangent = np.stack([a * np.sin(theta), np.zeros_like(theta), b * np.cos(theta)], axis=-1)
+    tangent /= np.linalg.norm(tangent, axis=-1, keepdims=True)
+    normal = np.cross(tangent, [0.0, 1.0, 0.0])
+    return p + np.asarray(lateral)[..., None] * normal, tangent
+
+
+def _heading_rotation(tangent: np.ndarray) -> np.ndarray:
+    """Camera looking along ``tangent`` with its y axis down: columns (x, y, z) in world."""
+    z = tangent
+    y = np.broadcast_to([0.0, 1.0, 0.0], z.shape)
+    x = np.cross(y, z)
+    return np.stack([x, y, z], axis=-1)
+
+
+@dataclass
+class ShakeModel:
+    """Sum-of-sines shaking: rotation vector (rad) and offset (m) as functions of time."""
+
+    rot_amp: np.ndarray  # (k, 3) rad
+    rot_freq: np.ndarray  # (k,) Hz
+    rot_phase: np.ndarray  # (k, 3)
+    pos_amp: np.ndarray  # (k, 3) m
+    pos_freq: np.ndarray
+    pos_phase: np.ndarray
+
+    @staticmethod
+    def create(motion: str, severity: float, rng: np.random.Generator) -> ShakeModel:
+        if motion == "handheld":  # hand tremor and walking: 1-9 Hz, a few degrees
+            rf = np.array([1.1, 2.3, 4.7, 8.9])
+            ra = np.radians([1.5, 1.0, 0.6, 0.35])[:, None] * rng.uniform(0.6, 1.0, (4, 3))
+            pf = np.array([1.8, 3.6, 0.9, 7.0])
+            pa = np.array([[0.01, 0.03, 0.005], [0.004, 0.01, 0.003], [0.02, 0.01, 0.01],
+                           [0.002, 0.003, 0.002]])  # fmt: skip
+        else:  # vehicle: body pitch / roll / yaw on a rough road, 1-6 Hz (slower than a
+            # frame's readout, so each frame's RS motion is close to constant velocity)
+            rf = np.array([1.2, 2.6, 4.1, 5.9])
+            ra = np.radians([1.0, 0.8, 0.6, 0.4])[:, None] * rng.uniform(0.6, 1.0, (4, 3))
+            pf = np.array([1.2, 2.6, 4.1, 5.9])
+            pa = np.array([[0.01, 0.02, 0.0], [0.005, 0.01, 0.0], [0.002, 0.006, 0.0],
+                           [0.001, 0.003, 0.0]])  # fmt: skip
+        return ShakeModel(severity * ra, rf, rng.uniform(0, 2 * np.pi, (4, 3)),
+                          severity * pa, pf, rng.uniform(0, 2 * np.pi, (4, 3)))
+
+    def rotation(self, t: np.ndarray) -> np.ndarray:
+        arg = 2 * np.pi * self.rot_freq[None, :, None] * t[:, None, None] + self.rot_phase
+        return np.sum(self.rot_amp[None] * np.sin(arg), axis=1)
+
+    def offset(self, t: np.ndarray) -> np.ndarray:
+        arg = 2 * np.pi * self.pos_freq[None, :, None] * t[:, None, None] + self.pos_phase
+        return np.sum(self.pos_amp[None] * np.sin(arg), axis=1)
+
+
+@dataclass
+class ContinuousTrajectory:
+    """Camera walking or driving along the loop with shaking; poses at any time."""
+
+    speed: float
+    shake: ShakeModel
+
+    def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``T_world_camera`` at times ``t`` (N,): R (N, 3, 3), p (N, 3)."""
+        t = np.atleast_1d(np.asarray(t, float))
+        a, b = paper_scene.LOOP_SEMI_AXES_M
+        perimeter = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))  # Ramanujan
+        theta = 2 * np.pi * self.speed * t / perimeter
+        p, tangent = _loop_point(theta)
+        R_heading = _heading_rotation(tangent)
+        R = R_heading @ so3_exp(self.shake.rotation(t))
+        p = p + np.einsum("nij,nj->ni", R_heading, self.shake.offset(t))
+        return R, p
+
+    def velocity(self, t: float, dt: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+        """Instantaneous (w, v) at ``t`` in the camera frame at ``t`` (central differences),
+        i.e. the RS velocities of a frame whose row 0 is exposed at ``t``."""
+        R, p = self.pose(np.array([t - dt, t, t + dt]))
+        w = so3_log(R[0].T @ R[2]) / (2 * dt)
+        v = R[1].T @ (p[2] - p[0]) / (2 * dt)
+        return w, v
+
+
+# --------------------------------------------------------------------------- sequences
+
+
+@dataclass
+class SynthConfig:
+    """What to render. ``line_delay`` None: the paper's 36 ms readout at this height."""
+
+    frames: int = 30
+    motion: str = "handheld"
+    level: int = 6  # paper motion only
+    severity: float = 1.0  # handheld / vehicle only
+    width: int = 640
+    height: int = 360
+    line_delay: float | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.motion not in MOTIONS:
+            raise ValueError(f"motion must be one of {MOTIONS}, got {self.motion!r}")
+        if self.level not in paper_scene.RS_LEVELS:
+            raise ValueError(f"level must be 1-6, got {self.level}")
+        if self.frames < 1:
+            raise ValueError(f"frames must be >= 1, got {self.frames}")
+        if self.width < 16 or self.height < 16:
+            raise ValueError(f"resolution must be at least 16x16, got {self.width}x{self.height}")
+        if self.line_delay is not None and not (0.0 <= self.line_delay < 1.0):
+            raise ValueError(f"line delay must be in [0, 1) s/row, got {self.line_delay}")
+        if not np.isfinite(self.severity) or self.severity < 0:
+            raise ValueError(f"severity must be >= 0, got {self.severity}")
+
+    @property
+    def tau(self) -> float:
+        return default_line_delay(self.height) if self.line_delay is None else self.line_delay
+
+    @property
+    def rate_hz(self) -> float:
+        return FRAME_RATE_HZ[self.motion]
+
+
+@dataclass
+class Frame:
+    """One rendered image and its ground truth (row-0 pose, RS velocities)."""
+
+    index: int
+    stamp: float  # s, row-0 exposure time
+    image: np.ndarray  # uint8 (H, W)
+    R_world_cam: np.ndarray
+    p_world_cam: np.ndarray
+    w: np.ndarray  # rad/s, row-0 camera frame
+    v: np.ndarray  # m/s, row-0 camera frame
+    row_pose: RowPoseFn  # rows (n,) -> T_world_camera of those rows
+
+
+class SequenceRenderer:
+    """Renders the frames of a :class:`SynthConfig` one at a time (constant memory)."""
+
+    def __init__(self, config: SynthConfig, scene: CorridorScene | None = None):
+        self.config = config
+        self.K = intrinsics(config.width, config.height)
+        self.scene = scene or CorridorScene.create(config.seed)
+        rng = np.random.default_rng([config.seed, 11])
+        if config.motion == "paper":
+            n_loop = max(config.frames, paper_scene.NUM_FRAMES)  # the paper's spacing, 250/loop
+            self._loop = paper_scene.loop_trajectory(rng, n_loop, config.rate_hz)
+            # the loop has its own small pose noise; keep the corridor's centre line
+            self._rs = [paper_scene.random_rs_velocity(rng, config.level)
+                        for _ in range(config.frames)]  # fmt: skip
+            self._traj = None
+        else:
+            self._traj = ContinuousTrajectory(SPEED_M_S[config.motion],
+                                              ShakeModel.create(config.motion, config.severity,
+                                                                rng))  # fmt: skip
+
+    def frame_pose(self, k: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                          RowPoseFn]:  # fmt: skip
+        cfg = self.config
+        stamp = k / cfg.rate_hz
+        tau = cfg.tau
+        if self._traj is None:
+            R0, p0 = self._loop.R_world_cam[k], self._loop.p_world_cam[k]
+            w, v = self._rs[k]
+
+            def row_pose(rows, R0=R0, p0=p0, w=w, v=v):
+                s = np.asarray(rows, float) * tau
+                return R0 @ so3_exp(s[:, None] * w), p0 + (s[:, None] * v) @ R0.T
+
+            return stamp, R0, p0, w, v, row_pose
+        R0, p0 = self._traj.pose(np.array([stamp]))
+        w, v = self._traj.velocity(stamp)
+
+        def row_pose(rows, stamp=stamp):
+            return self._traj.pose(stamp + np.asarray(rows, float) * tau)
+
+        return stamp, R0[0], p0[0], w, v, row_pose
+
+    def render(self, k: int) -> Frame:
+        cfg = self.config
+        stamp, R0, p0, w, v, row_pose = self.frame_pose(k)
+        R_rows, p_rows = row_pose(np.arange(cfg.height))
+        img = self.scene.render(R_rows, p_rows, self.K, cfg.width, cfg.height)
+        return Frame(k, stamp, img, R0, p0, w, v, row_pose)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for k in range(self.config.frames):
+            yield self.render(k)
+
+
+def render_sequence(config: SynthConfig) -> list[Frame]:
+    """All frames in memory (tests and small sequences)."""
+    return list(SequenceRenderer(config))
+
+
+def project_points(X_world: np.ndarray, row_pose: RowPoseFn, K: np.ndarray, height: int,
+                   iterations: int = 50, tol_px: float = 1e-6) -> np.ndarray:
+    """Exact RS projection of (N, 3) world points through a frame's per-row poses
+    (:func:`rsvo_ros.core.geometry.project_rs_rows`): (N, 2) pixels, nan where a point is behind
+    the camera, outside the rows, or the fixed-point iteration on the row did not settle."""
+    return project_rs_rows(X_world, row_pose, K, height, iterations, tol_px)[0]

@@ -1,0 +1,379 @@
+"""rsvo_replay: the odometry pipeline over a recorded rosbag2, as fast as the machine allows.
+
+Streams the bag (memory does not grow with its length) and writes into ``--output``:
+``trajectory.tum``, the ``odometry`` bag (``/rsvo/odom``, ``/rsvo/path``), ``summary.json`` and
+``trajectory.png``. Accuracy (ATE after Sim(3) alignment, RPE) comes from ``evo``.
+Exit codes: 0 done, 1 the bag cannot be read or holds no usable frames, 2 bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions
+from rsvo_ros.odometry.tracker import TrackerOptions
+from rsvo_ros.ros import bagio
+from rsvo_ros.ros.convert import (
+    CameraIntrinsics,
+    camera_from_info,
+    covariance_for_msg,
+    image_to_gray,
+    pose_components,
+    stamp_ns,
+)
+from rsvo_ros.twoview.estimator import MODELS, warm_up
+
+EXIT_OK, EXIT_BAD_BAG, EXIT_USAGE = 0, 1, 2
+PATH_LENGTH = 1000  # poses kept in each /rsvo/path message (bounded)
+ODOM_TOPIC, PATH_TOPIC = "/rsvo/odom", "/rsvo/path"
+ODOM_FRAME = "odom"
+
+
+class ReplayError(Exception):
+    """A one-line reason why the bag cannot be replayed."""
+
+
+@dataclass
+class ReplayConfig:
+    bag: Path
+    output: Path
+    model: str = "rs"
+    image_topic: str = bagio.IMAGE_TOPIC
+    camera_info_topic: str = bagio.CAMERA_INFO_TOPIC
+    ground_truth_topic: str = bagio.GROUND_TRUTH_TOPIC
+    line_delay: float | None = None
+    max_features: int = 500
+    overwrite: bool = False
+    progress: bool = True
+    options: PipelineOptions = field(default_factory=PipelineOptions)
+
+
+def _pose_line(stamp: int, T: np.ndarray) -> str:
+    (x, y, z), (qx, qy, qz, qw) = pose_components(T)
+    return f"{stamp / 1e9:.9f} {x:.9f} {y:.9f} {z:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
+
+
+def _odometry(res: FrameResult):
+    T = res.T_world_cam
+    return bagio.odometry_msg(res.stamp_ns, T[:3, :3], T[:3, 3], ODOM_FRAME, bagio.CAMERA_FRAME,
+                              pose_covariance=covariance_for_msg(res.covariance))  # fmt: skip
+
+
+def _path(poses: deque):
+    ts = bagio.typestore()
+    stamped = [ts.types["geometry_msgs/msg/PoseStamped"](
+        header=bagio.header(s, ODOM_FRAME), pose=bagio.pose_msg(T[:3, :3], T[:3, 3]))
+        for s, T in poses]  # fmt: skip
+    return ts.types[bagio.PATH_TYPE](header=bagio.header(poses[-1][0], ODOM_FRAME),
+                                     poses=stamped)  # fmt: skip
+
+
+def replay(cfg: ReplayConfig) -> dict:
+    """Run the pipeline over ``cfg.bag``; returns the summary (also written to the output)."""
+    from rosbags.rosbag2 import Reader
+
+    if cfg.model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}")
+    if cfg.output.exists() and any(cfg.output.iterdir()) and not cfg.overwrite:
+        if (cfg.output / "odometry").exists():
+            raise FileExistsError(f"{cfg.output} already holds a replay; pass --overwrite")
+    cfg.output.mkdir(parents=True, exist_ok=True)
+    odom_bag = cfg.output / "odometry"
+    if odom_bag.exists():
+        shutil.rmtree(odom_bag)
+    try:
+        reader = Reader(cfg.bag)
+        reader.open()
+    except Exception as exc:  # rosbags raises several types for unreadable bags
+        raise ReplayError(f"cannot read bag {cfg.bag}: {exc}") from None
+    topics = {c.topic: c for c in reader.connections}
+    if cfg.image_topic not in topics:
+        reader.close()
+        raise ReplayError(f"no image topic {cfg.image_topic} in {cfg.bag} (topics: "
+                          f"{', '.join(sorted(topics)) or 'none'}); give --image-topic")
+    if cfg.camera_info_topic not in topics:
+        reader.close()
+        raise ReplayError(f"no camera info topic {cfg.camera_info_topic} in {cfg.bag} "
+                          "(the intrinsics K are needed); give --camera-info-topic")
+    line_delay = cfg.line_delay
+    if line_delay is None:
+        text = bagio.custom_data(cfg.bag).get(bagio.LINE_DELAY_KEY)
+        if text is None and cfg.model == "rs":
+            reader.close()
+            raise ReplayError(f"{cfg.bag} does not record {bagio.LINE_DELAY_KEY}; give "
+                              "--line-delay (seconds per image row)")
+        line_delay = float(text) if text is not None else 0.0
+    if not np.isfinite(line_delay) or line_delay < 0:
+        reader.close()
+        raise ReplayError(f"line delay must be finite and >= 0, got {line_delay}")
+
+    gt_topic = cfg.ground_truth_topic if cfg.ground_truth_topic in topics else None
+    wanted = [topics[cfg.image_topic], topics[cfg.camera_info_topic]]
+    if gt_topic:
+        wanted.append(topics[gt_topic])
+    n_images = topics[cfg.image_topic].msgcount
+    options = cfg.options
+    options.model = cfg.model
+    options.tracker = TrackerOptions(max_features=cfg.max_features)
+
+    skipped: Counter = Counter()
+    statuses: Counter = Counter()
+    results_meta = []
+    gt: dict[int, np.ndarray] = {}
+    est: dict[int, np.ndarray] = {}
+    pipeline: OdometryPipeline | None = None
+    camera: CameraIntrinsics | None = None
+    poses: deque = deque(maxlen=PATH_LENGTH)
+    warm_s = warm_up()  # one-off kernel compile/load, not part of the frame rate
+    t_start = time.perf_counter()
+    bar = None
+    if cfg.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_images, desc="rsvo_replay", unit="frame", file=sys.stderr)
+    # the first camera info, so that an image stamped with it (often written first) is usable
+    for _c, _t, raw in reader.messages(connections=[topics[cfg.camera_info_topic]]):
+        try:
+            camera = camera_from_info(bagio.deserialize(raw, bagio.CAMERA_INFO_TYPE))
+            break
+        except Exception:  # noqa: BLE001 - a bad one is skipped, the next one may do
+            continue
+    writer = bagio.open_writer(odom_bag, "sqlite3")
+    ts = bagio.typestore()
+    with writer, open(cfg.output / "trajectory.tum", "w") as tum:
+        c_odom = writer.add_connection(ODOM_TOPIC, bagio.ODOMETRY_TYPE, typestore=ts)
+        c_path = writer.add_connection(PATH_TOPIC, bagio.PATH_TYPE, typestore=ts)
+        try:
+            for conn, _t, raw in reader.messages(connections=wanted):
+                try:
+                    msg = bagio.deserialize(raw, conn.msgtype)
+                except Exception as exc:
+                    if conn.topic == cfg.image_topic:
+                        skipped[f"corrupt message: {type(exc).__name__}"] += 1
+                        if bar is not None:
+                            bar.update(1)
+                    continue
+                if conn.topic == cfg.camera_info_topic:
+                    try:
+                        camera = camera_from_info(msg)
+                    except ValueError as exc:
+                        skipped[f"camera info: {exc}"] += 1
+                    continue
+                if conn.topic == gt_topic:
+                    R, p = bagio.pose_of(msg.pose.pose)
+                    T = np.eye(4)
+                    T[:3, :3], T[:3, 3] = R, p
+                    gt[stamp_ns(msg.header)] = T
+                    continue
+                if bar is not None:
+                    bar.update(1)
+                stamp = stamp_ns(msg.header)
+                if camera is None:
+                    skipped["no camera info received yet"] += 1
+                    continue
+                try:
+                    gray = image_to_gray(msg)
+                except ValueError as exc:
+                    skipped[str(exc).split(" (")[0]] += 1
+                    continue
+                if (gray.shape[1], gray.shape[0]) != (camera.width, camera.height) \
+                        and camera.width > 0:
+                    skipped["image size differs from camera info"] += 1
+                    continue
+                if pipeline is None:
+                    pipeline = OdometryPipeline(camera.K, camera.D, line_delay, options)
+                else:
+                    pipeline.set_camera(camera.K, camera.D, line_delay)
+                res = pipeline.process(stamp, gray)
+                if res.status == "skipped":
+                    skipped[res.reason.split(" (")[0]] += 1
+                    continue
+                statuses[res.status] += 1
+                est[stamp] = res.T_world_cam
+                tum.write(_pose_line(stamp, res.T_world_cam) + "\n")
+                writer.write(c_odom, stamp, bagio.serialize(_odometry(res)))
+                poses.append((stamp, res.T_world_cam))
+                writer.write(c_path, stamp, bagio.serialize(_path(poses)))
+                results_meta.append({"stamp_ns": stamp, "status": res.status,
+                                     "inlier_ratio": res.inlier_ratio,
+                                     "inliers": res.num_inliers, "tracks": res.num_tracks,
+                                     "time_ms": res.time_ms, "reason": res.reason})  # fmt: skip
+        except Exception as exc:  # truncated / corrupt storage in the middle of the bag
+            skipped[f"bag read stopped: {type(exc).__name__}: {exc}"[:200]] += 1
+        finally:
+            reader.close()
+            if bar is not None:
+                bar.close()
+    wall = time.perf_counter() - t_start
+    frames_in = sum(statuses.values()) + sum(skipped.values())
+    summary = {
+        "bag": str(cfg.bag), "model": cfg.model, "motion_prior": options.motion_prior,
+        "line_delay_s": line_delay,
+        "image_topic": cfg.image_topic, "frames_in_bag": n_images,
+        "frames_in": frames_in, "frames_posed": len(est),
+        "frames_estimated": statuses.get("posed", 0), "frames_held": statuses.get("held", 0),
+        "frames_skipped": sum(skipped.values()), "skipped_reasons": dict(skipped),
+        "inlier_ratio_mean": float(np.mean([m["inlier_ratio"] for m in results_meta
+                                            if m["status"] == "posed"] or [0.0])),
+        "time_ms_per_frame_median": float(np.median([m["time_ms"] for m in results_meta]
+                                                    or [0.0])),
+        "time_ms_per_frame_p95": float(np.percentile([m["time_ms"] for m in results_meta]
+                                                     or [0.0], 95)),
+        "wall_time_s": wall, "frames_per_second": frames_in / max(wall, 1e-9),
+        "solver_warm_up_s": warm_s,
+    }  # fmt: skip
+    if gt and len(est) >= 3:
+        summary["accuracy"] = accuracy(gt, est)
+    summary["frames"] = results_meta
+    with open(cfg.output / "summary.json", "w") as f:
+        json.dump(summary, f, indent=1)
+    plot_trajectory(cfg.output / "trajectory.png", est, gt, results_meta, cfg.model)
+    if not est:
+        raise ReplayError(f"no frame of {cfg.image_topic} could be used "
+                          f"({dict(skipped) or 'no images'}); see {cfg.output / 'summary.json'}")
+    return summary
+
+
+def _evo_traj(poses: dict[int, np.ndarray]):
+    from evo.core.trajectory import PoseTrajectory3D
+
+    stamps = np.array(sorted(poses))
+    return PoseTrajectory3D(poses_se3=[poses[s] for s in stamps], timestamps=stamps / 1e9)
+
+
+def sim3_aligned_positions(gt: dict[int, np.ndarray],
+                           est: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (M, 3) of the ground truth and of the estimate after evo's Sim(3) (Umeyama)
+    alignment, on the stamps they share."""
+    from evo.core import sync
+
+    ref, traj = sync.associate_trajectories(_evo_traj(gt), _evo_traj(est), max_diff=1e-3)
+    traj.align(ref, correct_scale=True)
+    return ref.positions_xyz, traj.positions_xyz
+
+
+def accuracy(gt: dict[int, np.ndarray], est: dict[int, np.ndarray]) -> dict:
+    """ATE (after Sim(3) alignment) and RPE (one frame, aligned) with evo."""
+    import copy
+
+    from evo.core import metrics, sync
+
+    ref, traj = sync.associate_trajectories(_evo_traj(gt), _evo_traj(est), max_diff=1e-3)
+    aligned = copy.deepcopy(traj)
+    _, _, s = aligned.align(ref, correct_scale=True)
+    out = {"matched_poses": int(ref.num_poses), "sim3_scale": float(s)}
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, aligned))
+    out["ate_m"] = {k: float(v) for k, v in ape.get_all_statistics().items()}
+    for name, rel in (("rpe_trans_m", metrics.PoseRelation.translation_part),
+                      ("rpe_rot_deg", metrics.PoseRelation.rotation_angle_deg)):
+        rpe = metrics.RPE(rel, delta=1, delta_unit=metrics.Unit.frames, all_pairs=False)
+        rpe.process_data((ref, aligned))
+        out[name] = {k: float(v) for k, v in rpe.get_all_statistics().items()}
+    return out
+
+
+def plot_trajectory(path: Path, est: dict, gt: dict, frames: list, model: str) -> None:
+    """Top view (x-z: the world's y points down) of the estimate, Sim(3)-aligned to the ground
+    truth when there is one, and the inlier ratio per frame (like the paper's Fig. 8)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 5), gridspec_kw={"width_ratios": [1, 1.3]})
+    if est:
+        xyz = np.array([est[s][:3, 3] for s in sorted(est)])
+        label = f"estimate ({model})"
+        if gt and len(est) >= 3:
+            g, xyz = sim3_aligned_positions(gt, est)
+            ax.plot(g[:, 0], g[:, 2], "k-", lw=2, label="ground truth")
+            label += ", Sim(3)-aligned"
+        ax.plot(xyz[:, 0], xyz[:, 2], "-", color="tab:red", lw=1.5, label=label)
+        ax.plot(xyz[0, 0], xyz[0, 2], "o", color="tab:red")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title("trajectory, top view")
+    if frames:
+        t0 = frames[0]["stamp_ns"]
+        tt = [(m["stamp_ns"] - t0) / 1e9 for m in frames if m["status"] == "posed"]
+        ir = [100 * m["inlier_ratio"] for m in frames if m["status"] == "posed"]
+        ax2.plot(tt, ir, ".-", color="k", ms=3)
+        held = [(m["stamp_ns"] - t0) / 1e9 for m in frames if m["status"] == "held"]
+        if held:
+            ax2.plot(held, [0] * len(held), "x", color="tab:red", label="held (no estimate)")
+            ax2.legend(loc="lower right", fontsize=8)
+    ax2.set_ylim(0, 105)
+    ax2.set_xlabel("time (s)")
+    ax2.set_ylabel("inlier ratio (%)")
+    ax2.grid(True, alpha=0.3)
+    ax2.set_title("inliers per frame pair")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rsvo_replay",
+                                description="Run rsvo_ros's odometry pipeline over a rosbag2.")
+    p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap)")
+    p.add_argument("--output", "-o", type=Path, required=True, help="output directory")
+    p.add_argument("--model", choices=MODELS, default="rs", help="relative pose model (rs)")
+    p.add_argument("--image-topic", default=bagio.IMAGE_TOPIC)
+    p.add_argument("--camera-info-topic", default=bagio.CAMERA_INFO_TOPIC)
+    p.add_argument("--ground-truth-topic", default=bagio.GROUND_TRUTH_TOPIC)
+    p.add_argument("--line-delay", type=float, default=None, metavar="S",
+                   help=f"seconds per image row (default: the bag's {bagio.LINE_DELAY_KEY})")
+    p.add_argument("--max-features", type=int, default=500, help="tracked corners (500)")
+    p.add_argument("--no-motion-prior", action="store_true",
+                   help="RS: estimate each frame pair on its own (the paper's setting) instead "
+                        "of centring the velocity prior on the stream's constant velocity and "
+                        "starting from the previous pair's motion")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.max_features < 20:
+        print("rsvo_replay: --max-features must be at least 20", file=sys.stderr)
+        return EXIT_USAGE
+    cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
+                       args.camera_info_topic, args.ground_truth_topic, args.line_delay,
+                       args.max_features, args.overwrite, not args.no_progress,
+                       PipelineOptions(motion_prior=not args.no_motion_prior))  # fmt: skip
+    try:
+        s = replay(cfg)
+    except (ValueError, FileExistsError) as exc:
+        print(f"rsvo_replay: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except ReplayError as exc:
+        print(f"rsvo_replay: {exc}", file=sys.stderr)
+        return EXIT_BAD_BAG
+    acc = s.get("accuracy")
+    line = (f"rsvo_replay: {s['frames_posed']}/{s['frames_in']} frames posed "
+            f"({s['frames_estimated']} estimated, {s['frames_held']} held, "
+            f"{s['frames_skipped']} skipped) at {s['frames_per_second']:.1f} frames/s")
+    if acc:
+        line += f"; ATE {acc['ate_m']['rmse']:.3f} m RMSE after Sim(3)"
+    print(line)
+    print(f"rsvo_replay: wrote {args.output}/trajectory.tum, odometry/, summary.json, "
+          "trajectory.png")
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

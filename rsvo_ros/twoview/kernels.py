@@ -1,0 +1,524 @@
+"""Compiled (numba) kernels of the RS solver: Levenberg-Marquardt on the Sampson error.
+
+The vectorized numpy model in :mod:`rsvo_ros.twoview.reference` is the readable specification
+(and the one the tests check against finite differences); this module evaluates the same
+residual and analytic Jacobian one correspondence at a time, accumulating the 17x17 normal
+equations as it goes, so that an LM iteration on 500 points costs well under a millisecond and
+never builds a (B, N, 17) array. Small vectors are tuples and 3x3 matrices tuples of rows, so the
+inner loop allocates nothing.
+
+Convention (as :mod:`rsvo_ros.twoview.reference`): ``X_curr = R X_prev + t`` between the cameras
+at the solver's reference row, per correspondence ``E_i = Rc^T [t + R s_p v_p - s_c v_c]x R Rp``
+with ``Rp = Exp(s_p w_p)``, ``Rc = Exp(s_c w_c)``; the increment is
+``[dtheta(3), dt(2), dvel(12)]`` with ``R <- R Exp(dtheta)``, ``t <- normalize(t + B dt)``.
+"""
+
+from __future__ import annotations
+
+import os
+
+# OpenMP threads that spin after lm_batch's parallel loop would take the other core from
+# OpenCV (tracking, the GS starts); let them sleep. Read when libgomp starts.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba as nb  # noqa: E402
+import numpy as np
+
+NUM_PARAMS = 17
+SERIES_ANGLE = 0.25  # rad; below this Exp and J_r use their Taylor series (row rotations are
+# s * |w| <= 20 ms * 5 rad/s = 0.1 rad)
+LAMBDA_MAX = 1e8  # damping at which a hypothesis gives up
+JIT = {"cache": True, "nogil": True, "fastmath": False}
+# lm_batch spreads hypotheses over the cores; the default workqueue layer must not be entered
+# from two threads at once (the node's worker and a test's), OpenMP or TBB may
+nb.config.THREADING_LAYER = "threadsafe"
+
+
+# --------------------------------------------------------------------------- 3-vector algebra
+
+
+@nb.njit(**JIT, inline="always")
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@nb.njit(**JIT, inline="always")
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@nb.njit(**JIT, inline="always")
+def _add(a, b):
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+@nb.njit(**JIT, inline="always")
+def _scale(s, a):
+    return (s * a[0], s * a[1], s * a[2])
+
+
+@nb.njit(**JIT, inline="always")
+def _mv(M, x):
+    """``M x`` for a matrix given as a tuple of rows."""
+    return (_dot(M[0], x), _dot(M[1], x), _dot(M[2], x))
+
+
+@nb.njit(**JIT, inline="always")
+def _mtv(M, x):
+    """``M^T x``."""
+    return _add(_add(_scale(x[0], M[0]), _scale(x[1], M[1])), _scale(x[2], M[2]))
+
+
+@nb.njit(**JIT, inline="always")
+def _mm(A, B):
+    """``A B``: row ``i`` of the product is ``B^T`` applied to row ``i`` of ``A``."""
+    return (_mtv(B, A[0]), _mtv(B, A[1]), _mtv(B, A[2]))
+
+
+@nb.njit(**JIT, inline="always")
+def _exp_jr(p):
+    """``Exp(p)`` and the right Jacobian ``J_r(p)`` (tuples of rows), as
+    :func:`rsvo_ros.core.geometry.so3_exp` and
+    :func:`rsvo_ros.core.geometry.so3_right_jacobian`."""
+    th2 = _dot(p, p)
+    if th2 < SERIES_ANGLE**2:
+        # Taylor series in th^2 (truncation < 1e-17 here): no sqrt, sin or cos per point
+        a = 1.0 + th2 * (-1 / 6 + th2 * (1 / 120 + th2 * (-1 / 5040 + th2 * (
+            1 / 362880 - th2 / 39916800))))  # fmt: skip
+        b = 0.5 + th2 * (-1 / 24 + th2 * (1 / 720 + th2 * (-1 / 40320 + th2 * (
+            1 / 3628800 - th2 / 479001600))))  # fmt: skip
+        c = 1 / 6 + th2 * (-1 / 120 + th2 * (1 / 5040 + th2 * (-1 / 362880 + th2 * (
+            1 / 39916800 - th2 / 6227020800))))  # fmt: skip
+    else:
+        th = np.sqrt(th2)
+        sn = np.sin(th)
+        a = sn / th
+        b = (1.0 - np.cos(th)) / th2
+        c = (th - sn) / (th2 * th)
+    x, y, z = p
+    d = 1.0 - b * th2
+    R = ((d + b * x * x, -a * z + b * x * y, a * y + b * x * z),
+         (a * z + b * x * y, d + b * y * y, -a * x + b * y * z),
+         (-a * y + b * x * z, a * x + b * y * z, d + b * z * z))  # fmt: skip
+    d = 1.0 - c * th2
+    J = ((d + c * x * x, b * z + c * x * y, -b * y + c * x * z),
+         (-b * z + c * x * y, d + c * y * y, b * x + c * y * z),
+         (b * y + c * x * z, -b * x + c * y * z, d + c * z * z))  # fmt: skip
+    return R, J
+
+
+@nb.njit(**JIT)
+def _rows(M):
+    return ((M[0, 0], M[0, 1], M[0, 2]), (M[1, 0], M[1, 1], M[1, 2]),
+            (M[2, 0], M[2, 1], M[2, 2]))  # fmt: skip
+
+
+@nb.njit(**JIT)
+def _velocities(vel):
+    return ((vel[0], vel[1], vel[2]), (vel[3], vel[4], vel[5]), (vel[6], vel[7], vel[8]),
+            (vel[9], vel[10], vel[11]))  # fmt: skip
+
+
+@nb.njit(**JIT)
+def _tangent(t):
+    """Orthonormal tangent basis ``(b1, b2)`` of the unit sphere at ``t`` (as
+    :func:`rsvo_ros.twoview.state.tangent_basis`)."""
+    a0, a1, a2 = abs(t[0]), abs(t[1]), abs(t[2])
+    if a0 <= a1 and a0 <= a2:  # the axis least aligned with t (np.argmin's first minimum)
+        helper = (1.0, 0.0, 0.0)
+    elif a1 <= a2:
+        helper = (0.0, 1.0, 0.0)
+    else:
+        helper = (0.0, 0.0, 1.0)
+    b1 = _cross(t, helper)
+    b1 = _scale(1.0 / np.sqrt(_dot(b1, b1)), b1)
+    return b1, _cross(t, b1)
+
+
+# --------------------------------------------------------------------------- one correspondence
+
+
+@nb.njit(**JIT, inline="always")
+def _rays(R, t, V, xp, xc, sp, sc):
+    """The two rays of one correspondence in the current reference camera and the baseline
+    between them: ``a = R Rp x_p``, ``b = Rc x_c``, ``T = t + R s_p v_p - s_c v_c`` (with
+    ``Rp = Exp(s_p w_p)``, ``Rc = Exp(s_c w_c)``, their right Jacobians, ``q = Rp x_p`` and
+    ``tp = s_p v_p``), so that ``lam_c b = lam_p a + T``."""
+    wp, vp, wc, vc = V
+    Rp, Jrp = _exp_jr(_scale(sp, wp))
+    Rc, Jrc = _exp_jr(_scale(sc, wc))
+    q = _mv(Rp, xp)
+    a = _mv(R, q)
+    b = _mv(Rc, xc)
+    tp = _scale(sp, vp)
+    T = _add(_add(t, _mv(R, tp)), _scale(-sc, vc))
+    return Rp, Jrp, Rc, Jrc, q, a, b, tp, T
+
+
+@nb.njit(**JIT, inline="always")
+def _epipolar(R, t, V, xp, xc, sp, sc, cam):
+    """Sampson error (px) of one correspondence and the intermediate terms its Jacobian needs.
+
+    The same algebra as :func:`rsvo_ros.twoview.reference.sampson_residuals`, one point at a time.
+    ``R`` rows, ``t``, ``V = (w_p, v_p, w_c, v_c)`` and ``cam = (focal, ds_dy)`` are tuples.
+    """
+    focal, kappa = cam
+    wp, vp, wc, vc = V
+    Rp, Jrp, Rc, Jrc, q, a, b, tp, T = _rays(R, t, V, xp, xc, sp, sc)
+    g = _cross(T, a)
+    h = _cross(b, T)
+    n = _dot(b, g)
+    Ex = _mtv(Rc, g)
+    Rth = _mtv(R, h)
+    ETx = _mtv(Rp, Rth)
+    # E_i moves with the rows: dn/ds_c, dn/ds_p
+    m_p = _cross(wp, xp)
+    m_c = _cross(wc, xc)
+    mp2 = _mv(Rp, m_p)
+    da = _mv(R, mp2)
+    db = _mv(Rc, m_c)
+    Rv = _mv(R, vp)
+    ab = _cross(a, b)
+    dn_c = _dot(db, g) - _dot(vc, ab)  # b.(a x v_c) = -v_c.(a x b)
+    dn_p = _dot(da, h) + _dot(Rv, ab)
+    u = (Ex[0], Ex[1] + kappa * dn_c, 0.0)
+    z = (ETx[0], ETx[1] + kappa * dn_p, 0.0)
+    d2 = u[0] * u[0] + u[1] * u[1] + z[0] * z[0] + z[1] * z[1]
+    inv_d = 1.0 / np.sqrt(max(d2, 1e-300))
+    e = focal * n * inv_d
+    return (e, Rp, Jrp, Rc, Jrc, q, a, b, tp, T, g, h, n, Ex, Rth, ETx, m_p, m_c, mp2, da, db,
+            Rv, ab, u, z, inv_d)  # fmt: skip
+
+
+@nb.njit(**JIT, inline="always")
+def _residual(R, t, V, xp, xc, sp, sc, cam):
+    """Sampson error (px) of one correspondence."""
+    return _epipolar(R, t, V, xp, xc, sp, sc, cam)[0]
+
+
+@nb.njit(**JIT)
+def _point(R, t, Bt, V, xp, xc, sp, sc, cam, J):
+    """Sampson error (px) of one correspondence; fills its Jacobian ``J`` (17,).
+    ``Bt``: the tangent basis of ``t``."""
+    (e, Rp, Jrp, Rc, Jrc, q, a, b, tp, T, g, h, n, Ex, Rth, ETx, m_p, m_c, mp2, da, db, Rv, ab,
+     u, z, inv_d) = _epipolar(R, t, V, xp, xc, sp, sc, cam)  # fmt: skip
+    focal, kappa = cam
+    wp, vp, wc, vc = V
+    U = _mv(Rc, u)
+    A = _mm(R, Rp)
+    Z = _mv(A, z)
+    k = focal * n * inv_d**3
+    f = focal * inv_d
+    alpha = -k * kappa * u[1]
+    beta = -k * kappa * z[1]
+    c_a = _add(_add(_scale(f, h), _scale(-k, _cross(U, T))),
+               _add(_scale(alpha, _add(_cross(db, T), _cross(vc, b))),
+                    _scale(beta, _cross(b, Rv))))  # fmt: skip
+    c_b = _add(_add(_scale(f, g), _scale(-k, _cross(T, Z))),
+               _add(_scale(alpha, _cross(a, vc)),
+                    _scale(beta, _add(_cross(T, da), _cross(Rv, a)))))  # fmt: skip
+    c_T = _add(_add(_scale(f, ab), _scale(-k, _add(_cross(a, U), _cross(Z, b)))),
+               _add(_scale(alpha, _cross(a, db)), _scale(beta, _cross(da, b))))  # fmt: skip
+    c_Ex = _scale(-k, u)
+    c_ETx = _scale(-k, z)
+    c_db = _scale(alpha, g)
+    c_da = _scale(beta, h)
+    c_Rv = _scale(beta, ab)
+    c_vc = _scale(-alpha, ab)  # alpha (b x a)
+    RtcT = _mtv(R, c_T)
+    Rtc_da = _mtv(R, c_da)
+    Rtc_Rv = _mtv(R, c_Rv)
+    j = _add(_add(_cross(q, _mtv(R, c_a)), _cross(tp, RtcT)), _cross(_mv(Rp, c_ETx), Rth))
+    j = _add(j, _add(_cross(mp2, Rtc_da), _cross(vp, Rtc_Rv)))
+    J[0], J[1], J[2] = j
+    J[3] = _dot(c_T, Bt[0])
+    J[4] = _dot(c_T, Bt[1])
+    y_p = _mtv(A, c_a)
+    y_da = _mtv(A, c_da)
+    j = _scale(sp, _mtv(Jrp, _add(_add(_cross(xp, y_p), _cross(c_ETx, ETx)), _cross(m_p, y_da))))
+    J[5], J[6], J[7] = _add(j, _cross(xp, y_da))
+    J[8], J[9], J[10] = _add(_scale(sp, RtcT), Rtc_Rv)
+    y_c = _mtv(Rc, c_b)
+    y_db = _mtv(Rc, c_db)
+    j = _scale(sc, _mtv(Jrc, _add(_add(_cross(xc, y_c), _cross(c_Ex, Ex)), _cross(m_c, y_db))))
+    J[11], J[12], J[13] = _add(j, _cross(xc, y_db))
+    J[14], J[15], J[16] = _add(_scale(-sc, c_T), c_vc)
+    return e
+
+
+@nb.njit(**JIT)
+def residuals_and_jacobian(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
+    """(N,) Sampson errors and (N, 17) Jacobian of one hypothesis (for tests and callers that
+    need them as arrays)."""
+    Rr = _rows(R)
+    tt = (t[0], t[1], t[2])
+    Bt = _tangent(tt)
+    V = _velocities(vel)
+    N = x_prev.shape[0]
+    e = np.empty(N)
+    J = np.empty((N, NUM_PARAMS))
+    for i in range(N):
+        xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
+        xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
+        e[i] = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, J[i])
+    return e, J
+
+
+# --------------------------------------------------------------------------- LM of one hypothesis
+
+
+@nb.njit(**JIT)
+def _loss(e, robust):
+    if robust > 0.0:
+        return robust * robust * np.log1p((e / robust) ** 2)
+    return e * e
+
+
+@nb.njit(**JIT)
+def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2, mu):
+    Rr = _rows(R)
+    tt = (t[0], t[1], t[2])
+    V = _velocities(vel)
+    c = 0.0
+    for m in range(idx.shape[0]):
+        i = idx[m]
+        xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
+        xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
+        e = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
+        c += _loss(e, robust)
+    for j in range(12):
+        c += p2[j] * (vel[j] - mu[j]) ** 2
+    return c
+
+
+@nb.njit(**JIT)
+def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2, mu, H,
+                      g):  # fmt: skip
+    """Fills ``H = J^T W J + P``, ``g = J^T W e + P (vel - mu)`` (IRLS weights ``W`` of the
+    Cauchy loss, prior ``P = diag(p2)`` on the velocities, centred on ``mu``); returns the
+    cost."""
+    Rr = _rows(R)
+    tt = (t[0], t[1], t[2])
+    Bt = _tangent(tt)
+    V = _velocities(vel)
+    J = np.empty(NUM_PARAMS)
+    H[:] = 0.0
+    g[:] = 0.0
+    c = 0.0
+    for m in range(idx.shape[0]):
+        i = idx[m]
+        xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
+        xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
+        e = _point(Rr, tt, Bt, V, xp, xc, s_prev[i], s_curr[i], cam, J)
+        c += _loss(e, robust)
+        w = 1.0 if robust <= 0.0 else 1.0 / (1.0 + (e / robust) ** 2)
+        for r in range(NUM_PARAMS):
+            wj = w * J[r]
+            g[r] += wj * e
+            for s in range(r, NUM_PARAMS):
+                H[r, s] += wj * J[s]
+    for r in range(NUM_PARAMS):
+        for s in range(r):
+            H[r, s] = H[s, r]
+    for j in range(12):
+        c += p2[j] * (vel[j] - mu[j]) ** 2
+        H[5 + j, 5 + j] += p2[j]
+        g[5 + j] += p2[j] * (vel[j] - mu[j])
+    return c
+
+
+@nb.njit(**JIT)
+def _cholesky_solve(A, b):
+    """Solve ``A x = b`` for symmetric positive-definite ``A``; ``ok`` False otherwise."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            if i == j:
+                if not s > 0.0:
+                    return b * 0.0, False
+                L[i, i] = np.sqrt(s)
+            else:
+                L[i, j] = s / L[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    x = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return x, True
+
+
+@nb.njit(**JIT)
+def _retract(R, t, vel, delta):
+    """:meth:`rsvo_ros.twoview.state.RSBatch.retract` of one state; new arrays."""
+    dR, _ = _exp_jr((delta[0], delta[1], delta[2]))
+    Rr = _mm(_rows(R), dR)
+    R_new = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            R_new[i, j] = Rr[i][j]
+    tt = (t[0], t[1], t[2])
+    b1, b2 = _tangent(tt)
+    tn = _add(tt, _add(_scale(delta[3], b1), _scale(delta[4], b2)))
+    tn = _scale(1.0 / np.sqrt(_dot(tn, tn)), tn)
+    t_new = np.array([tn[0], tn[1], tn[2]])
+    vel_new = vel + delta[5:17]
+    return R_new, t_new, vel_new
+
+
+@nb.njit(**JIT)
+def _rotation_angle(R):
+    c = (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0
+    return np.arccos(min(1.0, max(-1.0, c)))
+
+
+@nb.njit(**JIT)
+def _within_limits(R, vel, delta, limits, anchor):
+    """``limits`` = (max step rotation, max step translation, w_max, v_max, max rotation from
+    ``anchor``)."""
+    if np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2) > limits[0]:
+        return False
+    if np.sqrt(delta[3] ** 2 + delta[4] ** 2) > limits[1]:
+        return False
+    for blk in range(4):
+        o = 3 * blk
+        nrm = np.sqrt(vel[o] ** 2 + vel[o + 1] ** 2 + vel[o + 2] ** 2)
+        if nrm > (limits[2] if blk % 2 == 0 else limits[3]):
+            return False
+    if np.isfinite(limits[4]):
+        if _rotation_angle(anchor.T @ R) > limits[4]:
+            return False
+    return True
+
+
+@nb.njit(**JIT)
+def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam, rel_tol,
+            robust, p2, mu, basis, limits, anchor):
+    """Marquardt's damped Gauss-Newton ``(H + lambda diag(H)) d = -g`` in the span of
+    ``basis`` (17, k); a step that raises the cost or leaves ``limits`` is rejected. Returns
+    the state, its cost and the iterations run."""
+    k = basis.shape[1]
+    full = k == NUM_PARAMS  # the identity basis: no projection
+    H = np.empty((NUM_PARAMS, NUM_PARAMS))
+    g = np.empty(NUM_PARAMS)
+    cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust,
+                             p2, mu, H, g)
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007
+        if full:
+            Hb, gb = H, g
+        else:
+            Hb = basis.T @ H @ basis
+            gb = basis.T @ g
+        dmax = 0.0
+        for i in range(k):
+            dmax = max(dmax, Hb[i, i])
+        A = Hb.copy()
+        for i in range(k):
+            A[i, i] += lam * max(Hb[i, i], 1e-12 * max(dmax, 1e-300))
+        step, ok = _cholesky_solve(A, -gb)
+        accepted = False
+        if ok:
+            delta = step.copy() if full else basis @ step
+            for i in range(NUM_PARAMS):
+                if not np.isfinite(delta[i]):
+                    delta[i] = 0.0
+            R_c, t_c, vel_c = _retract(R, t, vel, delta)
+            cost_c = _cost(R_c, t_c, vel_c, x_prev, x_curr, s_prev, s_curr, cam, idx,
+                           robust, p2, mu)
+            if np.isfinite(cost_c) and cost_c < cost and _within_limits(R_c, vel_c, delta,
+                                                                        limits, anchor):
+                accepted = True
+        if not accepted:
+            lam *= 4.0
+            if lam > LAMBDA_MAX:
+                break
+            continue
+        rel = (cost - cost_c) / max(cost, 1e-300)
+        R, t, vel, cost = R_c, t_c, vel_c, cost_c
+        lam = max(lam / 3.0, 1e-12)
+        if rel < rel_tol:
+            break
+        cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx,
+                                 robust, p2, mu, H, g)
+    return R, t, vel, cost, it
+
+
+@nb.njit(**JIT, parallel=True)
+def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lambda_init,
+             rel_tol, robust, p2, mu, basis, limits, anchor):
+    """LM for each of B hypotheses on its own correspondences ``idx[b]``.
+
+    ``R`` (B, 3, 3), ``t`` (B, 3), ``vel`` (B, 12); ``idx`` (B, n) int64; ``robust`` the
+    Cauchy scale in px (0: squares); ``p2`` (12,) squared inverse prior std; ``mu`` (B, 12)
+    the prior's centres; ``basis`` (17, k);
+    ``limits`` (5,) as :func:`_within_limits`; ``anchor`` (B, 3, 3). Returns new states, costs
+    (B,) and iterations (B,).
+    """
+    B = R.shape[0]
+    R_out = np.empty_like(R)
+    t_out = np.empty_like(t)
+    vel_out = np.empty_like(vel)
+    cost = np.empty(B)
+    iters = np.empty(B, np.int64)
+    for b in nb.prange(B):  # hypotheses are independent: over the cores, same result
+        Rb, tb, vb, cb, ib = _lm_one(R[b].copy(), t[b].copy(), vel[b].copy(), x_prev, x_curr,
+                                     s_prev, s_curr, cam, idx[b], iterations, lambda_init,
+                                     rel_tol, robust, p2, mu[b], basis, limits, anchor[b])
+        R_out[b], t_out[b], vel_out[b], cost[b], iters[b] = Rb, tb, vb, cb, ib
+    return R_out, t_out, vel_out, cost, iters
+
+
+@nb.njit(**JIT)
+def residuals_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
+    """(B, N) Sampson errors (px) of B hypotheses on all N correspondences."""
+    B = R.shape[0]
+    N = x_prev.shape[0]
+    e = np.empty((B, N))
+    for b in range(B):
+        Rr = _rows(R[b])
+        tt = (t[b, 0], t[b, 1], t[b, 2])
+        V = _velocities(vel[b])
+        for i in range(N):
+            xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
+            xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
+            e[b, i] = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
+    return e
+
+
+@nb.njit(**JIT)
+def depths_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr):
+    """(B, N) depths of every correspondence in both frames, as
+    :func:`rsvo_ros.twoview.reference.rs_depths` (nan where the rays are parallel)."""
+    B = R.shape[0]
+    N = x_prev.shape[0]
+    lam_p = np.empty((B, N))
+    lam_c = np.empty((B, N))
+    for b in range(B):
+        Rr = _rows(R[b])
+        tt = (t[b, 0], t[b, 1], t[b, 2])
+        V = _velocities(vel[b])
+        for i in range(N):
+            xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
+            xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
+            _, _, _, _, _, a, bb, _, T = _rays(Rr, tt, V, xp, xc, s_prev[i], s_curr[i])
+            aa, b2, ab = _dot(a, a), _dot(bb, bb), _dot(a, bb)
+            aT, bT = _dot(a, T), _dot(bb, T)
+            det = aa * b2 - ab * ab
+            if abs(det) < 1e-15:
+                lam_p[b, i] = np.nan
+                lam_c[b, i] = np.nan
+            else:
+                lam_p[b, i] = (ab * bT - b2 * aT) / det
+                lam_c[b, i] = (aa * bT - ab * aT) / det
+    return lam_p, lam_c

@@ -1,0 +1,80 @@
+"""Rotations and the RS camera model: invariants and known answers."""
+
+import numpy as np
+import pytest
+from conftest import TOL
+
+from rsvo_ros.core import geometry as geo
+
+
+def test_exp_log_round_trip(rng):
+    phi = rng.normal(size=(200, 3))
+    phi *= (rng.uniform(0, 3.1, 200) / np.linalg.norm(phi, axis=1))[:, None]
+    R = geo.so3_exp(phi)
+    assert np.allclose(R @ np.swapaxes(R, -1, -2), np.eye(3), atol=TOL["roundtrip"])
+    assert np.allclose(np.linalg.det(R), 1.0)
+    assert np.allclose(geo.so3_log(R), phi, atol=1e-7)
+
+
+def test_log_near_pi_and_zero():
+    for axis in np.eye(3):
+        R = geo.so3_exp(np.pi * axis)
+        assert np.isclose(np.linalg.norm(geo.so3_log(R)), np.pi)
+    assert np.allclose(geo.so3_log(np.eye(3)), 0.0)
+
+
+def test_right_jacobian_first_order(rng):
+    phi = rng.normal(size=3)
+    d = 1e-7 * rng.normal(size=3)
+    lhs = geo.so3_exp(phi + d)
+    rhs = geo.so3_exp(phi) @ geo.so3_exp(geo.so3_right_jacobian(phi) @ d)
+    assert np.abs(lhs - rhs).max() < 1e-12
+
+
+def test_pose_at_row_round_trip(rng):
+    R = geo.so3_exp(0.1 * rng.normal(size=3))
+    t = rng.normal(size=3)
+    w_p, v_p, w_c, v_c = rng.normal(size=(4, 3)) * [[1], [5], [1], [5]]
+    R_m, t_m, vel_m = geo.pose_at_row(R, t, w_p, v_p, w_c, v_c, 359.5, 50e-6)
+    R_0, t_0, vel_0 = geo.pose_from_row(R_m, t_m, *vel_m, 359.5, 50e-6)
+    assert np.allclose(R_0, R, atol=TOL["roundtrip"])
+    assert np.allclose(t_0, t, atol=TOL["roundtrip"])
+    for a, b in zip(vel_0, (w_p, v_p, w_c, v_c), strict=True):
+        assert np.allclose(a, b, atol=TOL["roundtrip"])
+
+
+def test_pose_at_row_zero_is_identity(rng):
+    R = geo.so3_exp(0.1 * rng.normal(size=3))
+    t = rng.normal(size=3)
+    R_m, t_m, _ = geo.pose_at_row(R, t, *rng.normal(size=(4, 3)), 0.0, 50e-6)
+    assert np.allclose(R_m, R) and np.allclose(t_m, t)
+
+
+def test_rs_projection_is_row_consistent(rng):
+    """Each projected point was seen from the pose of the row it landed on (CONTRACTS.md)."""
+    K = np.array([[1000.0, 0, 639.5], [0, 1000.0, 359.5], [0, 0, 1]])
+    X = np.column_stack([rng.uniform(-5, 5, 300), rng.uniform(-3, 3, 300),
+                         rng.uniform(4, 20, 300)])
+    w, v = np.radians([40.0, -80.0, 30.0]), np.array([20.0, -30.0, 35.0])
+    tau = 50e-6
+    pts, _ = geo.project_rs(X, np.eye(3), np.zeros(3), K, tau, w, v, height=720)
+    ok = np.isfinite(pts).all(axis=1)
+    assert ok.sum() > 100
+    R_r, t_r = geo.rs_row_pose(pts[ok, 1], tau, w, v)
+    X_r = np.einsum("nji,nj->ni", R_r, X[ok] - t_r)  # X_row_r = R^T (X_row0 - t)
+    proj = X_r[:, :2] / X_r[:, 2:] * 1000.0 + [639.5, 359.5]
+    assert np.abs(proj - pts[ok]).max() < TOL["rs_projection_px"]
+
+
+def test_rs_projection_without_motion_is_pinhole(rng):
+    K = np.array([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]])
+    X = np.column_stack([rng.uniform(-1, 1, 50), rng.uniform(-1, 1, 50), rng.uniform(3, 6, 50)])
+    pts, z = geo.project_rs(X, np.eye(3), np.zeros(3), K, 50e-6, np.zeros(3), np.zeros(3))
+    assert np.allclose(pts, X[:, :2] / X[:, 2:] * 800 + [320, 240])
+    assert np.allclose(z, X[:, 2])
+
+
+@pytest.mark.parametrize("deg", [0.0, 1.0, 90.0, 179.0])
+def test_rotation_angle(deg):
+    R = geo.so3_exp(np.radians(deg) * np.array([0.0, 0.6, 0.8]))
+    assert np.isclose(geo.rotation_angle_deg(R), deg, atol=1e-6)

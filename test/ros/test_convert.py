@@ -1,0 +1,74 @@
+"""Message <-> numpy conversions shared by the node and the tools (rsvo_ros.ros.convert)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from rsvo_ros.ros.convert import camera_from_info, covariance_for_msg, pose_components, to_gray
+from rsvo_ros.sim.synth import SynthConfig, render_sequence
+
+
+@pytest.fixture(scope="module")
+def textured():
+    return render_sequence(SynthConfig(frames=1, width=320, height=180))[0].image
+
+
+def test_to_gray_accepts_the_supported_encodings(textured):
+    h, w = textured.shape
+    rgb = np.dstack([textured, textured, textured])
+    assert np.array_equal(to_gray(textured.ravel(), "mono8", h, w, w), textured)
+    assert np.array_equal(to_gray(rgb.ravel(), "rgb8", h, w, 3 * w), textured)
+    assert np.array_equal(to_gray(rgb.ravel(), "bgr8", h, w, 3 * w), textured)
+    m16 = (textured.astype("<u2") << 8).view(np.uint8).ravel()
+    assert np.array_equal(to_gray(m16, "mono16", h, w, 2 * w), textured)
+    padded = np.hstack([textured, np.zeros((h, 4), np.uint8)])  # step > width
+    assert np.array_equal(to_gray(padded.ravel(), "mono8", h, w, w + 4), textured)
+
+
+@pytest.mark.parametrize("args, message", [
+    (("yuv422", 10, 10, 20), "unsupported encoding"),
+    (("mono8", 0, 10, 10), "empty"),
+    (("mono8", 10, 10, 5), "shorter than a row"),
+    (("mono8", 10, 10, 10), "bytes"),  # data too short below
+])
+def test_to_gray_rejects_bad_images(args, message):
+    with pytest.raises(ValueError, match=message):
+        to_gray(np.zeros(50, np.uint8), *args)
+
+
+def _info(k, d=(), model="plumb_bob", width=320, height=180):
+    return SimpleNamespace(k=list(k), d=list(d), distortion_model=model, width=width,
+                           height=height)
+
+
+def test_camera_from_info_reads_k_d_and_size():
+    K = np.array([[400.0, 0, 160], [0, 410.0, 90], [0, 0, 1]])
+    cam = camera_from_info(_info(K.ravel(), [0.1, 0, 0, 0, 0]))
+    assert np.array_equal(cam.K, K) and np.allclose(cam.D, [0.1, 0, 0, 0, 0])
+    assert (cam.width, cam.height) == (320, 180)
+    assert camera_from_info(_info(K.ravel(), [0.0] * 5)).D is None  # zeros: no distortion
+
+
+@pytest.mark.parametrize("k, d, model, message", [
+    ([0.0] * 9, [], "plumb_bob", "invalid K"),
+    ([np.nan] + [0.0] * 8, [], "plumb_bob", "invalid K"),
+    ([400.0, 0, 160, 0, 400.0, 90, 0, 0, 1], [0.1], "kannala_brandt_9", "unsupported"),
+])
+def test_camera_from_info_rejects_bad_intrinsics(k, d, model, message):
+    with pytest.raises(ValueError, match=message):
+        camera_from_info(_info(k, d, model))
+
+
+def test_pose_components_and_covariance():
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    T[:3, :3] = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # 90 deg about z
+    p, q = pose_components(T)
+    assert np.allclose(p, [1, 2, 3]) and np.allclose(q, [0, 0, np.sqrt(0.5), np.sqrt(0.5)])
+    cov = np.full((6, 6), np.inf)
+    cov[0, 0] = 2.0
+    out = covariance_for_msg(cov)
+    assert out.shape == (36,) and out[0] == 2.0 and np.all(out[1:] == 1e6)

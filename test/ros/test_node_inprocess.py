@@ -1,0 +1,165 @@
+"""rsvo_node's features in one process: reset service, debug image, base_link odometry,
+the newest-frame policy. (The cross-process DDS graphs are in test_node.py.)"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from nav_msgs.msg import Odometry
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
+
+from rsvo_ros.ros.node import RsvoNode
+from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def ros_context():
+    ctx = rclpy.Context()
+    ctx.init(domain_id=200 + os.getpid() % 30)
+    yield ctx
+    ctx.try_shutdown()
+
+
+def _frames(n=6):
+    cfg = SynthConfig(frames=n, motion="vehicle", severity=0.5, width=320, height=180)
+    r = SequenceRenderer(cfg)
+    info = CameraInfo()
+    info.k = [float(x) for x in r.K.ravel()]
+    info.width, info.height = cfg.width, cfg.height
+    msgs = []
+    for f in r:
+        m = Image()
+        m.height, m.width, m.encoding, m.step = 180, 320, "mono8", 320
+        m.data = f.image.tobytes()
+        ns = round(f.stamp * 1e9)
+        m.header.stamp.sec, m.header.stamp.nanosec = ns // 10**9, ns % 10**9
+        msgs.append(m)
+    return info, msgs
+
+
+class Harness:
+    def __init__(self, ctx, overrides=None):
+        self.node = RsvoNode(context=ctx, parameter_overrides=overrides or [])
+        self.client_node = rclpy.create_node("harness", context=ctx)
+        self.odom, self.debug = [], []
+        self.client_node.create_subscription(Odometry, "/rsvo/odom", self.odom.append, 50)
+        self.client_node.create_subscription(Image, "/rsvo/debug_image", self.debug.append,
+                                             qos_profile_sensor_data)
+        self.ex = MultiThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self.ex.add_node(self.client_node)
+        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
+        self.thread.start()
+
+    def feed(self, info, msgs, wait=True):
+        self.node._on_info(info)
+        for m in msgs:
+            self.node._on_image(m)
+            if wait:
+                self._idle()
+
+    def _idle(self, timeout=10.0):
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end and (self.node._pending is not None
+                                            or self.node._wake.is_set()):
+            time.sleep(0.01)
+        time.sleep(0.15)
+
+    def close(self):
+        self.ex.shutdown()
+        self.node.destroy_node()
+        self.client_node.destroy_node()
+
+
+def test_reset_service_restarts_at_the_origin_and_debug_image_is_drawn(ros_context):
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("image_qos_reliability", value="reliable")])
+    try:
+        info, msgs = _frames(6)
+        t_end = time.monotonic() + 10
+        while h.node.pub_debug.get_subscription_count() == 0 and time.monotonic() < t_end:
+            time.sleep(0.05)
+        h.feed(info, msgs[:4])
+        assert len(h.odom) == 4
+        moved = h.odom[-1].pose.pose.position
+        assert np.linalg.norm([moved.x, moved.y, moved.z]) > 0.1
+        cli = h.client_node.create_client(Trigger, "/rsvo/reset")
+        assert cli.wait_for_service(timeout_sec=10)
+        fut = cli.call_async(Trigger.Request())
+        t_end = time.monotonic() + 10
+        while not fut.done() and time.monotonic() < t_end:
+            time.sleep(0.02)
+        assert fut.result().success
+        h.feed(info, msgs[4:])
+        first_after = h.odom[4].pose.pose
+        assert np.allclose([first_after.position.x, first_after.position.y,
+                            first_after.position.z], 0.0)
+        assert first_after.orientation.w == pytest.approx(1.0)
+        assert h.debug, "no debug image"
+        d = h.debug[-1]
+        assert (d.encoding, d.width, d.height) == ("bgr8", 320, 180)
+        img = np.frombuffer(bytes(d.data), np.uint8).reshape(180, 320, 3)
+        green = (img[..., 1] > 150) & (img[..., 0] < 50) & (img[..., 2] < 50)
+        assert green.sum() > 100  # inlier tracks drawn
+    finally:
+        h.close()
+
+
+def test_base_frame_odometry_uses_the_fixed_transform(ros_context):
+    q = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_quat()  # optical -> base
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("base_frame", value="base_link"),
+                              Parameter("base_to_camera", value=[0.2, 0.0, 1.0, *q])])
+    try:
+        info, msgs = _frames(4)
+        h.feed(info, msgs)
+        assert {o.child_frame_id for o in h.odom} == {"base_link"}
+        first = h.odom[0].pose.pose
+        assert np.allclose([first.position.x, first.position.y, first.position.z], 0.0,
+                           atol=1e-9)  # the base starts at the odom origin
+        last = h.odom[-1].pose.pose.position
+        # the camera drives forward (optical z) = base x
+        assert last.x > 0 and abs(last.x) > abs(last.z)
+    finally:
+        h.close()
+
+
+def test_frames_arriving_while_busy_are_dropped_not_queued(ros_context):
+    h = Harness(ros_context, [Parameter("model", value="gs")])
+    try:
+        info, msgs = _frames(5)
+        h.node._on_info(info)
+        gate, seen = threading.Event(), []
+        original = h.node._process
+
+        def slow(msg, t_recv):  # a busy worker
+            seen.append(msg)
+            gate.wait(10.0)
+            original(msg, t_recv)
+
+        h.node._process = slow
+        h.node._on_image(msgs[0])
+        t_end = time.monotonic() + 10
+        while not seen and time.monotonic() < t_end:
+            time.sleep(0.01)
+        for m in msgs[1:]:  # the first waits, each later one replaces it
+            h.node._on_image(m)
+        gate.set()
+        h._idle()
+        assert h.node.stats["received"] == 5
+        assert h.node.stats["dropped"] == 3
+        assert seen == [msgs[0], msgs[4]]  # the newest frame, nothing queued
+    finally:
+        h.close()

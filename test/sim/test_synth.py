@@ -1,0 +1,208 @@
+"""rsvo_synth: exact RS rendering, bag round trips, the command line."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+
+from rsvo_ros.core.geometry import so3_log
+from rsvo_ros.ros import bagio, convert
+from rsvo_ros.sim.synth import (
+    TEXELS_PER_M,
+    TEXTURE_SIZE,
+    CorridorScene,
+    SequenceRenderer,
+    SynthConfig,
+    project_points,
+    render_sequence,
+)
+from rsvo_ros.tools.synth_bag import main as synth_main
+from rsvo_ros.tools.synth_bag import write_bag
+
+DOT_TOL_PX = 0.5  # issue: dots land within 0.5 px of their exact RS projection
+MAX_BLOB_AREA_PX = 30
+
+
+DOT_RADIUS_TEXELS = 5.0
+
+
+def _dot_texture(rng, count=160):
+    """Mid-gray tile with white discs at wall heights 0.3-2.7 m (clear of floor and ceiling);
+    returns the texture and the dot centres in texels."""
+    tex = np.full((TEXTURE_SIZE, TEXTURE_SIZE), 90.0, np.float32)
+    lo, hi = 0.3 * TEXELS_PER_M, 2.7 * TEXELS_PER_M
+    centres = np.column_stack([rng.uniform(20, TEXTURE_SIZE - 20, count),
+                               rng.uniform(lo, hi, count)])
+    for cx, cy in centres:
+        cv2.circle(tex, (int(round(cx * 16)), int(round(cy * 16))),
+                   int(DOT_RADIUS_TEXELS * 16), 255.0, -1, lineType=cv2.LINE_AA, shift=4)
+    return tex, centres
+
+
+def _blob_centroids(img, max_area=MAX_BLOB_AREA_PX):
+    """Intensity centroids of small bright blobs (large, near, oblique discs are skipped:
+    their image centroid is not the projection of their centre)."""
+    mask = (img > 170).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    out = []
+    w = np.clip(img.astype(float) - 90.0, 0, None)
+    for i in range(1, n):
+        x, y, bw, bh, area = stats[i]
+        if area < 4 or area > max_area or x == 0 or y == 0 or x + bw >= img.shape[1] \
+                or y + bh >= img.shape[0]:
+            continue
+        ys, xs = np.nonzero(labels == i)
+        ww = w[ys, xs]
+        out.append([np.sum(xs * ww) / ww.sum(), np.sum(ys * ww) / ww.sum()])
+    return np.array(out).reshape(-1, 2)
+
+
+def _hidden_by_inner_wall(scene, row_pose, rows, X):
+    """Whether the segment from each row's camera to X crosses the inner wall first."""
+    R, p = row_pose(rows)
+    A, B = scene.wall_axes(0)
+    cx, cz = scene.centre
+    d = X - p
+    ox, oz = (p[:, 0] - cx) / A, (p[:, 2] - cz) / B
+    dx, dz = d[:, 0] / A, d[:, 2] / B
+    qa, qb, qc = dx * dx + dz * dz, ox * dx + oz * dz, ox * ox + oz * oz - 1.0
+    disc = qb * qb - qa * qc
+    lam = (-qb - np.sqrt(np.maximum(disc, 0))) / qa
+    return (disc > 0) & (lam > 1e-6) & (lam < 1 - 1e-6)
+
+
+@pytest.mark.parametrize("motion, extra", [("paper", {"level": 6}),
+                                           ("handheld", {"severity": 3.0}),
+                                           ("vehicle", {"severity": 3.0})])
+def test_rendered_points_land_on_their_exact_rs_projection(motion, extra):
+    """Dots on the outer wall, fully visible, land on the fixed-point RS projection of their
+    centres (the paper motion at level 6 moves rows by tens of pixels)."""
+    rng = np.random.default_rng(4)
+    tex, centres = _dot_texture(rng)
+    gray = np.full_like(tex, 90.0)
+    scene = CorridorScene([gray, tex, gray, gray])
+    cfg = SynthConfig(frames=3, motion=motion, width=640, height=360, **extra)
+    renderer = SequenceRenderer(cfg, scene)
+    frame = renderer.render(2)
+    assert np.degrees(np.linalg.norm(frame.w)) > 20.0  # strong RS motion
+    tile = TEXTURE_SIZE / TEXELS_PER_M
+    s = (centres[:, 0][None, :] / TEXELS_PER_M + tile * np.arange(-12, 13)[:, None]).ravel()
+    t = np.tile(centres[:, 1] / TEXELS_PER_M, 25)
+    X = scene.surface_points(1, s, t)
+    proj = project_points(X, frame.row_pose, renderer.K, cfg.height)
+    ok = np.isfinite(proj).all(axis=1)
+    ok &= (proj[:, 0] > 12) & (proj[:, 0] < cfg.width - 12)
+    ok &= (proj[:, 1] > 12) & (proj[:, 1] < cfg.height - 12)
+    # fully visible: the centre and eight rim points are not behind the inner wall
+    r = 1.5 * DOT_RADIUS_TEXELS / TEXELS_PER_M
+    for ang in np.linspace(0, 2 * np.pi, 8, endpoint=False):
+        Xr = scene.surface_points(1, s + r * np.cos(ang), t + r * np.sin(ang))
+        rows = np.nan_to_num(proj[:, 1], nan=0.0)
+        ok &= ~_hidden_by_inner_wall(scene, frame.row_pose, rows, Xr)
+    ok &= ~_hidden_by_inner_wall(scene, frame.row_pose, np.nan_to_num(proj[:, 1]), X)
+    expected = proj[ok]
+    blobs = _blob_centroids(frame.image)
+    # isolated projections only (no second dot within 10 px)
+    dd = np.linalg.norm(expected[:, None] - expected[None], axis=2) + np.eye(len(expected)) * 1e9
+    expected = expected[dd.min(axis=1) > 10.0]
+    d = np.linalg.norm(expected[:, None, :] - blobs[None, :, :], axis=2)
+    nearest = d.min(axis=1)
+    found = nearest < 3.0  # small enough to be measured (large near dots are skipped)
+    assert found.sum() >= 10, found.sum()
+    assert np.median(nearest[found]) < 0.5 * DOT_TOL_PX
+    assert np.max(nearest[found]) < DOT_TOL_PX, np.sort(nearest[found])[-5:]
+
+
+def test_rolling_shutter_moves_the_rows():
+    """The same frame without line delay differs: the distortion is real."""
+    a = render_sequence(SynthConfig(frames=2, motion="paper", level=6, width=160, height=90))
+    b = render_sequence(SynthConfig(frames=2, motion="paper", level=6, width=160, height=90,
+                                    line_delay=0.0))
+    assert np.array_equal(a[0].R_world_cam, b[0].R_world_cam)
+    assert np.mean(np.abs(a[1].image.astype(int) - b[1].image.astype(int))) > 5
+
+
+def test_frames_are_textured_everywhere():
+    frame = render_sequence(SynthConfig(frames=1, width=320, height=180))[0]
+    corners = cv2.goodFeaturesToTrack(frame.image, 500, 0.01, 8)
+    assert corners is not None and len(corners) > 150
+    hist, _, _ = np.histogram2d(corners[:, 0, 0], corners[:, 0, 1], bins=(4, 3),
+                                range=[[0, 320], [0, 180]])
+    assert hist.min() > 0  # features in every cell of a 4x3 grid
+
+
+def test_handheld_ground_truth_velocity_matches_the_trajectory():
+    """The (w, v) ground truth is the row-0 derivative: X_row0 = Exp(r tau w) X_r + r tau v."""
+    cfg = SynthConfig(frames=2, motion="handheld", severity=2.0, width=1280, height=720)
+    r = SequenceRenderer(cfg)
+    stamp, R0, p0, w, v, row_pose = r.frame_pose(1)
+    R1, p1 = row_pose(np.array([2.0]))
+    dt = 2 * cfg.tau
+    assert np.allclose(R0.T @ (p1[0] - p0), dt * v, rtol=0, atol=1e-2 * np.linalg.norm(dt * v))
+    assert np.allclose(so3_log(R0.T @ R1[0]), dt * w, rtol=0, atol=1e-2 * np.linalg.norm(dt * w))
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_bag_round_trip(tmp_path, storage):
+    cfg = SynthConfig(frames=4, motion="vehicle", width=96, height=54, seed=2)
+    path = tmp_path / f"bag_{storage}"
+    write_bag(path, cfg, storage, progress=False)
+    frames = render_sequence(cfg)
+    meta = bagio.custom_data(path)
+    assert float(meta[bagio.LINE_DELAY_KEY]) == pytest.approx(cfg.tau, rel=1e-12)
+    assert meta["rsvo.motion"] == "vehicle"
+    with Reader(path) as reader:
+        topics = {c.topic: c for c in reader.connections}
+        assert topics[bagio.IMAGE_TOPIC].msgtype == bagio.IMAGE_TYPE
+        assert topics[bagio.CAMERA_INFO_TOPIC].msgtype == bagio.CAMERA_INFO_TYPE
+        assert topics[bagio.GROUND_TRUTH_TOPIC].msgtype == bagio.ODOMETRY_TYPE
+        seen = {t: [] for t in topics}
+        for conn, t_ns, raw in reader.messages():
+            seen[conn.topic].append((t_ns, bagio.deserialize(raw, conn.msgtype)))
+    assert all(len(v) == cfg.frames for v in seen.values())
+    for k, ((t_img, img), (t_info, info), (t_gt, gt)) in enumerate(zip(
+            seen[bagio.IMAGE_TOPIC], seen[bagio.CAMERA_INFO_TOPIC],
+            seen[bagio.GROUND_TRUTH_TOPIC], strict=True)):
+        stamp_ns = round(frames[k].stamp * 1e9)
+        assert t_img == t_info == t_gt == stamp_ns
+        for msg in (img, info, gt):
+            assert convert.stamp_ns(msg.header) == stamp_ns
+        assert img.encoding == "mono8" and img.header.frame_id == bagio.CAMERA_FRAME
+        assert (img.width, img.height, img.step) == (96, 54, 96)
+        assert np.array_equal(img.data.reshape(54, 96), frames[k].image)
+        assert info.distortion_model == "plumb_bob"
+        assert np.allclose(info.k.reshape(3, 3), SequenceRenderer(cfg).K)
+        assert (gt.header.frame_id, gt.child_frame_id) == ("world", bagio.CAMERA_FRAME)
+        R, p = bagio.pose_of(gt.pose.pose)
+        assert np.allclose(R, frames[k].R_world_cam, atol=1e-9)
+        assert np.allclose(p, frames[k].p_world_cam)
+        tw = gt.twist.twist
+        assert np.allclose([tw.angular.x, tw.angular.y, tw.angular.z], frames[k].w)
+        assert np.allclose([tw.linear.x, tw.linear.y, tw.linear.z], frames[k].v)
+
+
+def test_cli_refuses_to_overwrite_and_validates(tmp_path, capsys):
+    out = tmp_path / "b"
+    assert synth_main([str(out), "--frames", "2", "--resolution", "64x36", "--no-progress"]) == 0
+    assert "wrote 2 frames" in capsys.readouterr().out
+    assert synth_main([str(out), "--frames", "2", "--no-progress"]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert synth_main([str(out), "--frames", "2", "--resolution", "64x36", "--overwrite",
+                       "--no-progress", "--storage", "mcap"]) == 0
+    assert synth_main([str(tmp_path / "c"), "--frames", "0", "--no-progress"]) == 2
+    assert "frames" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        synth_main([str(tmp_path / "d"), "--resolution", "big"])
+
+
+def test_console_script_runs(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.synth_bag", str(tmp_path / "e"),
+                           "--frames", "2", "--resolution", "64x36", "--motion", "paper",
+                           "--level", "3"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "e" / "metadata.yaml").exists()

@@ -1,0 +1,144 @@
+"""rsvo_replay over rosbag2 files: outputs, accounting of every frame, bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+
+from rsvo_ros.ros import bagio
+from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
+from rsvo_ros.tools.replay import main as replay_main
+from rsvo_ros.tools.synth_bag import write_bag
+
+
+@pytest.fixture(scope="module")
+def vehicle_bag(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("bags") / "vehicle"
+    write_bag(path, SynthConfig(frames=8, motion="vehicle", severity=1.0, width=320,
+                                height=180, seed=1), "mcap", progress=False)
+    return path
+
+
+def _topics(path):
+    with Reader(path) as r:
+        return {c.topic: c.msgcount for c in r.connections}
+
+
+@pytest.mark.parametrize("model, extra", [("gs", []), ("rs", []), ("rs", ["--no-motion-prior"])])
+def test_replay_writes_every_output(vehicle_bag, tmp_path, model, extra, capsys):
+    out = tmp_path / model
+    assert replay_main([str(vehicle_bag), "--output", str(out), "--model", model,
+                        "--no-progress", *extra]) == 0
+    assert "frames posed" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["motion_prior"] == ("--no-motion-prior" not in extra)
+    assert summary["frames_in"] == 8 == summary["frames_in_bag"]
+    assert summary["frames_posed"] + summary["frames_skipped"] == summary["frames_in"]
+    assert summary["frames_posed"] >= 7
+    lines = (out / "trajectory.tum").read_text().splitlines()
+    assert len(lines) == summary["frames_posed"]
+    vals = np.array([[float(x) for x in ln.split()] for ln in lines])
+    assert vals.shape[1] == 8 and np.isfinite(vals).all()
+    assert np.allclose(np.linalg.norm(vals[:, 4:], axis=1), 1.0)  # unit quaternions
+    topics = _topics(out / "odometry")
+    assert topics == {"/rsvo/odom": summary["frames_posed"], "/rsvo/path": summary["frames_posed"]}
+    acc = summary["accuracy"]
+    assert acc["matched_poses"] == summary["frames_posed"]
+    assert np.isfinite(acc["ate_m"]["rmse"]) and acc["ate_m"]["rmse"] < 1.0
+    assert (out / "trajectory.png").stat().st_size > 10_000
+
+
+def _write_bad_bag(path: Path) -> int:
+    """Good frames mixed with an unsupported encoding, a truncated image, a duplicate and a
+    backwards stamp, and one image before any camera info. Returns the image count."""
+    cfg = SynthConfig(frames=8, motion="vehicle", severity=0.5, width=320, height=180, seed=3)
+    renderer = SequenceRenderer(cfg)
+    frames = list(renderer)
+    ts = bagio.typestore()
+    writer = bagio.open_writer(path, "sqlite3")
+    n = 0
+    with writer:
+        writer.set_custom_data(bagio.LINE_DELAY_KEY, str(cfg.tau))
+        ci = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
+        cc = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE, typestore=ts)
+        for k, fr in enumerate(frames):
+            stamp = 1_000_000_000 + round(fr.stamp * 1e9)
+            msg = bagio.image_msg(stamp, fr.image)
+            if k == 2:
+                msg.encoding = "yuv422"
+            if k == 4:
+                msg.data = msg.data[: len(msg.data) // 2]
+            writer.write(ci, stamp, bagio.serialize(msg))
+            n += 1
+            if k == 0:
+                continue  # the first image comes before any camera info
+            writer.write(cc, stamp, bagio.serialize(
+                bagio.camera_info_msg(stamp, renderer.K, cfg.width, cfg.height)))
+            if k == 5:  # the same image again, then one from the past
+                writer.write(ci, stamp + 1, bagio.serialize(bagio.image_msg(stamp, fr.image)))
+                writer.write(ci, stamp + 2, bagio.serialize(
+                    bagio.image_msg(stamp - 200_000_000, frames[3].image)))
+                n += 2
+    return n
+
+
+def test_bad_messages_are_counted_and_the_rest_is_processed(tmp_path):
+    bag = tmp_path / "bad"
+    n = _write_bad_bag(bag)
+    out = tmp_path / "out"
+    assert replay_main([str(bag), "--output", str(out), "--model", "gs", "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames_in"] == n
+    assert s["frames_posed"] + s["frames_skipped"] == n
+    reasons = " | ".join(s["skipped_reasons"])
+    for word in ("unsupported encoding", "bytes", "duplicate", "backwards"):
+        assert word in reasons, reasons
+    assert s["frames_posed"] >= 4
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing", "cannot read bag"),
+    ("image_topic", "no image topic /nope"),
+    ("camera_info", "camera info topic"),
+    ("line_delay", "--line-delay"),
+    ("truncated", "cannot read bag"),
+])
+def test_unusable_bags_fail_with_one_line(vehicle_bag, tmp_path, capsys, case, message):
+    args = [str(vehicle_bag), "--output", str(tmp_path / "o"), "--no-progress"]
+    if case == "missing":
+        args[0] = str(tmp_path / "does-not-exist")
+    elif case == "image_topic":
+        args += ["--image-topic", "/nope"]
+    elif case == "camera_info":
+        args += ["--camera-info-topic", "/nope"]
+    elif case == "line_delay":
+        bag = tmp_path / "nold"
+        cfg = SynthConfig(frames=2, width=64, height=36)
+        write_bag(bag, cfg, "sqlite3", progress=False)
+        meta = (bag / "metadata.yaml").read_text().replace("rsvo.line_delay", "other.key")
+        (bag / "metadata.yaml").write_text(meta)
+        args[0] = str(bag)
+    elif case == "truncated":
+        bag = tmp_path / "trunc"
+        write_bag(bag, SynthConfig(frames=3, width=64, height=36), "mcap", progress=False)
+        data = next(bag.glob("*.mcap"))
+        data.write_bytes(data.read_bytes()[:200])
+        args[0] = str(bag)
+    code = replay_main(args)
+    err = capsys.readouterr().err.strip()
+    assert code == 1
+    assert message in err and len(err.splitlines()) == 1
+
+
+def test_console_script(vehicle_bag, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.replay", str(vehicle_bag),
+                           "--output", str(tmp_path / "o"), "--model", "gs"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "rsvo_replay" in proc.stderr  # the progress bar
