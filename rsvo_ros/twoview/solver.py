@@ -124,9 +124,12 @@ def _depth_sign_counts(state: RSBatch, corr: Correspondences,
 
 def cheirality_fraction(state: RSBatch, corr: Correspondences, mask: np.ndarray) -> np.ndarray:
     """Fraction (B,) of the (B, N) ``mask``'s points whose depths agree in sign in both frames
-    (either sign: ``(t, v)`` and ``-(t, v)`` fit equally, see :func:`fix_sign`)."""
+    (either sign, point by point: ``(t, v)`` and ``-(t, v)`` fit equally, see
+    :func:`fix_sign`, and where the velocities move the baseline of a row's cameras past zero,
+    as at the paper's level 6, right solutions put some points behind both cameras; a wrong
+    decomposition puts points in front of one camera and behind the other)."""
     front, behind = _depth_sign_counts(state, corr, mask)
-    return np.maximum(front, behind) / np.maximum(mask.sum(axis=1), 1)
+    return (front + behind) / np.maximum(mask.sum(axis=1), 1)
 
 
 def fix_sign(state: RSBatch, corr: Correspondences, mask: np.ndarray) -> RSBatch:

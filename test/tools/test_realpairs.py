@@ -1,0 +1,154 @@
+"""rsvo_bench --real and --realistic: real RS pairs with GS twins, realistic synthetic pairs."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from conftest import REPO_ROOT
+
+from rsvo_ros.core.geometry import rotation_angle_deg
+from rsvo_ros.estimation import estimate_relative_pose
+from rsvo_ros.sim.realistic import realistic_pair
+from rsvo_ros.tools import realpairs
+from rsvo_ros.tools.bench import main
+
+REAL = REPO_ROOT / "data" / "realdata" / "bsrsc"
+READOUT_FROM_TWINS = 0.42  # BS-RSC: RS->GS-twin displacement fits this readout (README)
+
+
+@pytest.fixture(scope="module")
+def real_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("real")
+    assert main(["--real", str(REAL), "--output", str(out), "--no-progress"]) == 0
+    return json.loads((out / "real.json").read_text()), out
+
+
+def test_the_real_pairs_ship_with_their_licence():
+    assert (REAL / "LICENSE").read_text().startswith("MIT License")
+    assert len(realpairs.load_pairs(REAL)) == 4
+
+
+def test_real_pairs_report_every_method_and_a_picture(real_report):
+    report, out = real_report
+    s = report["summary"]
+    assert set(s) == set(realpairs.METHODS)
+    assert all(v["pairs"] == 4 and v["failed"] == 0 for v in s.values())
+    # the GS twins' reference agrees with OpenCV's best GS pipeline on the RS tracks
+    assert s["OpenCV USAC_MAGSAC (GS)"]["rot_err_deg_mean"] < 0.2
+    # our GS model is that pipeline
+    assert np.isclose(s["ours gs"]["rot_err_deg_mean"], s["OpenCV USAC_MAGSAC (GS)"]
+                      ["rot_err_deg_mean"], atol=1e-6)  # fmt: skip
+    assert (out / "real_pairs.png").stat().st_size > 100_000
+    assert "| ours rs, stream |" in report["table"]
+
+
+def test_rs_model_on_real_pairs_is_as_good_as_the_gs_pipeline(real_report):
+    s = real_report[0]["summary"]
+    gs = s["OpenCV USAC_MAGSAC (GS)"]
+    for mode in ("ours rs, two-view", "ours rs, stream"):
+        assert s[mode]["rot_err_deg_mean"] <= 1.1 * gs["rot_err_deg_mean"]
+        assert s[mode]["dir_err_deg_median"] <= gs["dir_err_deg_median"] + 0.5
+    # two views of smooth real motion carry no velocities: not reported, no harm done
+    two = s["ours rs, two-view"]
+    assert two["unroll_px_median"] <= two["nothing_px_median"] + 1e-9
+
+
+def test_stream_velocities_unroll_real_frames_with_the_right_readout():
+    pair = realpairs.load_pairs(REAL)[1]
+    tracks = realpairs.prepare(pair)
+    res = {r.method: r for r in realpairs.evaluate_pair(tracks, READOUT_FROM_TWINS)}
+    stream = res["ours rs, stream"]
+    assert np.median(stream.unroll_px) < 0.5 * np.median(stream.nothing_px)
+
+
+def test_bad_real_directories_fail_with_a_clear_message(tmp_path, capsys):
+    assert main(["--real", str(tmp_path / "nowhere"), "--output", str(tmp_path)]) == 2
+    assert "not a directory" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["--real", str(tmp_path / "empty"), "--output", str(tmp_path)]) == 2
+    assert "no pair folders" in capsys.readouterr().err
+    bad = tmp_path / "bad" / "p0"
+    bad.mkdir(parents=True)
+    for name in realpairs.PAIR_FILES:
+        (bad / name).write_bytes(b"not a png")
+    assert main(["--real", str(tmp_path / "bad"), "--output", str(tmp_path)]) == 2
+    assert "cannot read" in capsys.readouterr().err
+
+
+def test_unroll_moves_rs_pixels_to_the_middle_row_time():
+    """With the true velocities and depths, unrolling lands on the GS-twin positions of a
+    realistic pair (no noise on the twins; the pixel noise stays)."""
+    p = realistic_pair(3)
+    K, tau = p.K, p.line_delay
+    height = 2 * K[1, 2] + 1
+    keep = ~p.outliers
+    est = estimate_relative_pose(p.pts_prev[keep], p.pts_curr[keep], K, tau,
+                                 rows_prev=p.rows_prev[keep], rows_curr=p.rows_curr[keep],
+                                 frame_interval=p.frame_interval)
+    assert est.ok
+    moved = realpairs.unroll(p.pts_prev[keep], est.depths_prev, est.w_prev, est.v_prev, K, tau,
+                             (height - 1) / 2, p.rows_prev[keep])
+    nothing = np.linalg.norm(p.pts_prev[keep] - p.twin_prev[keep], axis=1)
+    left = np.linalg.norm(moved - p.twin_prev[keep], axis=1)
+    assert np.nanmedian(left) < 0.15 * np.median(nothing)
+    zero = realpairs.unroll(p.pts_prev[keep], est.depths_prev, np.zeros(3), np.zeros(3), K, tau,
+                            (height - 1) / 2, p.rows_prev[keep])
+    assert np.allclose(zero[np.isfinite(zero).all(1)],
+                       p.pts_prev[keep][np.isfinite(zero).all(1)])  # fmt: skip
+
+
+def test_realistic_pairs_are_reproducible_and_consistent():
+    a, b = realistic_pair(7), realistic_pair(7)
+    assert np.array_equal(a.pts_prev, b.pts_prev) and np.array_equal(a.twin_curr, b.twin_curr)
+    assert 100 < len(a.pts_prev) <= 500 and 0 < a.outliers.mean() < 0.5
+    # without a readout the RS pixels are their GS twins (up to the noise)
+    g = realistic_pair(7, readout=0.0)
+    err = np.linalg.norm(g.pts_prev - g.twin_prev, axis=1)[~g.outliers]
+    assert np.median(err) < 0.6
+
+
+def test_smooth_pairs_keep_the_gs_fit_and_strong_rs_keeps_the_rs_fit(paper_scene):
+    """The model selection: on smooth realistic pairs the RS model reports the GS pose (zero
+    velocities from two views; the constant velocity of the motion in a stream); on the
+    paper's level 4 it keeps its velocities and beats the GS fit."""
+    p = realistic_pair(1)
+    kw = dict(rows_prev=p.rows_prev, rows_curr=p.rows_curr)
+    two = estimate_relative_pose(p.pts_prev, p.pts_curr, p.K, p.line_delay, **kw)
+    gs = estimate_relative_pose(p.pts_prev, p.pts_curr, p.K, 0.0, model="gs", **kw)
+    assert two.ok and not np.any(two.w_prev) and not np.any(two.v_curr)
+    assert rotation_angle_deg(two.R @ gs.R.T) < 1e-6
+    stream = estimate_relative_pose(p.pts_prev, p.pts_curr, p.K, p.line_delay,
+                                    frame_interval=p.frame_interval, **kw)
+    w_cv = np.linalg.norm(stream.w_prev)
+    assert stream.ok and np.isclose(w_cv, np.linalg.norm(stream.w_curr))
+    assert np.isclose(w_cv, np.radians(rotation_angle_deg(gs.R)) / p.frame_interval, rtol=0.05)
+    rng = np.random.default_rng(4)
+    pair = paper_scene.frame_pair(rng, 4)
+    noisy = [pts + rng.normal(0, 0.5, pts.shape) for pts in (pair.pts_prev, pair.pts_curr)]
+    rs = estimate_relative_pose(*noisy, pair.K, pair.line_delay)
+    gs = estimate_relative_pose(*noisy, pair.K, pair.line_delay, model="gs")
+    assert np.linalg.norm(rs.w_prev) > 0.1
+    assert rotation_angle_deg(pair.R @ rs.R.T) < 0.5 * rotation_angle_deg(pair.R @ gs.R.T)
+
+
+def test_quick_realistic_bench(tmp_path, capsys):
+    assert main(["--realistic", "--trials", "2", "--output", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "tuning seeds 0-1" in text and "held-out seeds 1000-1001" in text
+    data = json.loads((tmp_path / "realistic.json").read_text())
+    assert set(data["groups"]) == {"tuning", "held-out"}
+
+
+def test_realpairs_reads_color_images(tmp_path):
+    """The loader turns the PNGs to gray and keeps the pair's name."""
+    src = REAL / "pair_0"
+    dst = tmp_path / "one" / "mine"
+    dst.mkdir(parents=True)
+    for name in realpairs.PAIR_FILES:
+        img = cv2.imread(str(src / name))
+        cv2.imwrite(str(dst / name), cv2.resize(img, (512, 384)))
+    pairs = realpairs.load_pairs(tmp_path / "one")
+    assert [p.name for p in pairs] == ["mine"] and pairs[0].shape == (384, 512)
