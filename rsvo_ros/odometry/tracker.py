@@ -63,6 +63,11 @@ class FeatureTracker:
     def num_tracks(self) -> int:
         return len(self._pts)
 
+    def current(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ids (n,) and raw pixels (n, 2) of every feature of the last image (tracked ones and
+        the corners detected in it)."""
+        return self._ids.copy(), self._pts.astype(float)
+
     def track(self, img: np.ndarray) -> TrackedPair:
         """Track the current features into ``img`` (uint8 gray), then top up by detection.
 

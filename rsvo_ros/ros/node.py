@@ -150,7 +150,7 @@ class RsvoNode(Node):
         if self.pipeline is not None or self._camera is None:
             return
         K, D, _, _ = self._camera
-        opts = PipelineOptions(model=self.p["model"],
+        opts = PipelineOptions(model=self.p["model"], backend=self.p["backend"],
                                tracker=TrackerOptions(max_features=int(self.p["max_features"])),
                                motion_prior=bool(self.p["motion_prior"]))
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])

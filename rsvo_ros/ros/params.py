@@ -18,6 +18,7 @@ from rcl_interfaces.msg import (
 )
 from scipy.spatial.transform import Rotation
 
+from rsvo_ros.odometry.pipeline import BACKENDS
 from rsvo_ros.twoview.estimator import MODELS
 
 QOS_CHOICES = ("auto", "reliable", "best_effort")
@@ -53,6 +54,9 @@ PARAMETERS = {
     "line_delay": (0.0, _float("Seconds per image row (rolling-shutter line delay, tau); "
                                "0 for a global shutter.", 0.0, 1e-3)),
     "model": ("rs", _str("Relative pose model.", MODELS)),
+    "backend": ("window", _str("Odometry backend: window (keyframes, a local map and the RS "
+                               "window bundle adjustment) or pairwise (the paper's chain of "
+                               "frame pairs).", BACKENDS)),
     "max_features": (500, _int("Tracked corners (paper: 500).", 20, 5000)),
     "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
     "motion_prior": (True, _bool(
@@ -95,6 +99,8 @@ def read_config(values: dict) -> NodeConfig:
     p = values
     if p["model"] not in MODELS:
         raise ValueError(f"parameter model must be one of {MODELS}, got {p['model']!r}")
+    if p["backend"] not in BACKENDS:
+        raise ValueError(f"parameter backend must be one of {BACKENDS}, got {p['backend']!r}")
     if p["image_qos_reliability"] not in QOS_CHOICES:
         raise ValueError(f"parameter image_qos_reliability must be one of {QOS_CHOICES}, "
                          f"got {p['image_qos_reliability']!r}")  # fmt: skip

@@ -11,6 +11,10 @@ Motions (``MOTIONS``):
   CONTRACTS.md exactly: ``X_row0 = Exp(r tau w) X_row_r + r tau v``.
 - ``handheld`` / ``vehicle``: a continuous 30 Hz camera walking (1.4 m/s) or driving (8 m/s)
   along the loop, shaken by hand tremor or road vibration; ``severity`` scales the shaking.
+- ``walk``: a person walking (about 1 m/s) with a hand-held camera at 30 Hz: head bob and sway
+  at the step frequency, hand shake inside (3-5 Hz) and above (8-15 Hz) the readout band, fast
+  pans every few seconds and, in sequences of 8 s and more, a stop to look around (a stretch
+  of pure rotation); ``severity`` scales the shake (0.5 mild, 1 strong, 2 strongest).
   Rows follow the continuous trajectory; the frame's (w, v) ground truth is its instantaneous
   velocity at the row-0 time.
 Conventions: world frame y down (the loop lies in x-z), camera optical frame, poses
@@ -28,8 +32,9 @@ import numpy as np
 from rsvo_ros.core.geometry import project_rs_rows, so3_exp, so3_log
 from rsvo_ros.sim import paper_scene
 
-MOTIONS = ("paper", "handheld", "vehicle")
-FRAME_RATE_HZ = {"paper": paper_scene.FRAME_RATE_HZ, "handheld": 30.0, "vehicle": 30.0}
+MOTIONS = ("paper", "handheld", "vehicle", "walk")
+FRAME_RATE_HZ = {"paper": paper_scene.FRAME_RATE_HZ, "handheld": 30.0, "vehicle": 30.0,
+                 "walk": 30.0}
 SPEED_M_S = {"handheld": 1.4, "vehicle": 8.0}
 REFERENCE_READOUT_S = 720 * paper_scene.LINE_DELAY  # 36 ms: the paper's 720 rows x 50 us
 CORRIDOR_HALF_WIDTH_M = 3.0
@@ -266,6 +271,89 @@ class ContinuousTrajectory:
         return w, v
 
 
+@dataclass
+class WalkTrajectory:
+    """A hand-held camera carried by a walking person along the loop; poses at any time.
+
+    Speed 1 m/s (stopping for ``stop`` = (start, duration) s, where the camera pans: pure
+    rotation), head bob (2.5 cm vertical at the 1.8 Hz step frequency, 2 cm sway at half of
+    it, 1 deg of pitch), pans (``pans``: (time, yaw deg) smooth turns of 0.6 s) and hand shake
+    ``ShakeModel``-like in two bands, scaled by ``severity``.
+    """
+
+    severity: float
+    rng_phases: np.ndarray  # (6, 3) random phases
+    pans: list[tuple[float, float]]
+    stop: tuple[float, float] | None
+    speed: float = 1.0
+    _grid: np.ndarray | None = None
+    _arc: np.ndarray | None = None
+
+    @staticmethod
+    def create(severity: float, rng: np.random.Generator, duration: float) -> WalkTrajectory:
+        pans = []
+        t = rng.uniform(0.8, 1.5)
+        while t < duration - 0.6:
+            pans.append((t, float(rng.choice([-1.0, 1.0]) * rng.uniform(15.0, 30.0))))
+            t += rng.uniform(2.0, 3.5)
+        stop = (0.45 * duration, min(2.0, 0.15 * duration)) if duration >= 8.0 else None
+        return WalkTrajectory(severity, rng.uniform(0, 2 * np.pi, (6, 3)), pans, stop)
+
+    def _speed(self, t: np.ndarray) -> np.ndarray:
+        v = np.full_like(t, self.speed)
+        if self.stop is not None:
+            t0, dur = self.stop
+            inside = (t > t0) & (t < t0 + dur)
+            v[inside] *= 0.5 * (1 + np.cos(2 * np.pi * (t[inside] - t0) / dur))  # 1 -> 0 -> 1
+        return v
+
+    def _arc_length(self, t: np.ndarray) -> np.ndarray:
+        if self._grid is None:
+            self._grid = np.arange(-1.0, 600.0, 1e-3)
+            self._arc = np.concatenate([[0.0], np.cumsum(self._speed(self._grid[:-1]) * 1e-3)])
+        return np.interp(t, self._grid, self._arc)
+
+    def _yaw(self, t: np.ndarray) -> np.ndarray:
+        """Pans: smooth yaw steps (rad), and the look-around while stopped."""
+        yaw = np.zeros_like(t)
+        for t0, deg in self.pans:
+            u = np.clip((t - t0) / 0.6, 0.0, 1.0)
+            yaw += np.radians(deg) * (u - np.sin(2 * np.pi * u) / (2 * np.pi))
+        if self.stop is not None:
+            t0, dur = self.stop
+            u = np.clip((t - t0) / dur, 0.0, 1.0)
+            yaw += np.radians(40.0) * np.sin(2 * np.pi * u)  # look left and right, come back
+        return yaw
+
+    def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``T_world_camera`` at times ``t`` (N,): R (N, 3, 3), p (N, 3)."""
+        t = np.atleast_1d(np.asarray(t, float))
+        a, b = paper_scene.LOOP_SEMI_AXES_M
+        perimeter = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
+        theta = 2 * np.pi * self._arc_length(t) / perimeter
+        p, tangent = _loop_point(theta)
+        R_heading = _heading_rotation(tangent)
+        ph = self.rng_phases
+        walking = self._speed(t) / self.speed  # the bob fades when the person stops
+        step = 2 * np.pi * 1.8 * t
+        bob = np.stack([0.02 * np.sin(step / 2 + ph[0, 0]), 0.025 * np.sin(step + ph[0, 1]),
+                        np.zeros_like(t)], axis=1) * walking[:, None]  # fmt: skip
+        sev = self.severity
+        rot = np.zeros((len(t), 3))
+        rot[:, 0] += np.radians(1.0) * np.sin(step + ph[1, 0]) * walking  # pitch with the steps
+        for band, (freqs, amp) in enumerate((((3.1, 4.3, 4.9), 0.8), ((8.3, 11.7, 14.6), 0.4))):
+            for i, f in enumerate(freqs):
+                rot[:, i] += sev * np.radians(amp) * np.sin(2 * np.pi * f * t + ph[2 + band, i])
+        rot[:, 1] += self._yaw(t)
+        pos_shake = sev * 0.004 * np.sin(2 * np.pi * np.array([3.7, 5.3, 4.1]) * t[:, None]
+                                         + ph[4])  # fmt: skip
+        R = R_heading @ so3_exp(rot)
+        p = p + np.einsum("nij,nj->ni", R_heading, bob + pos_shake)
+        return R, p
+
+    velocity = ContinuousTrajectory.velocity
+
+
 # --------------------------------------------------------------------------- sequences
 
 
@@ -334,6 +422,9 @@ class SequenceRenderer:
             self._rs = [paper_scene.random_rs_velocity(rng, config.level)
                         for _ in range(config.frames)]  # fmt: skip
             self._traj = None
+        elif config.motion == "walk":
+            self._traj = WalkTrajectory.create(config.severity, rng,
+                                               config.frames / config.rate_hz)
         else:
             self._traj = ContinuousTrajectory(SPEED_M_S[config.motion],
                                               ShakeModel.create(config.motion, config.severity,

@@ -24,93 +24,22 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numba as nb  # noqa: E402
 import numpy as np
 
+from rsvo_ros.core.small3 import JIT
+from rsvo_ros.core.small3 import add as _add
+from rsvo_ros.core.small3 import cross as _cross
+from rsvo_ros.core.small3 import dot as _dot
+from rsvo_ros.core.small3 import exp_jr as _exp_jr
+from rsvo_ros.core.small3 import mm as _mm
+from rsvo_ros.core.small3 import mtv as _mtv
+from rsvo_ros.core.small3 import mv as _mv
+from rsvo_ros.core.small3 import rows as _rows
+from rsvo_ros.core.small3 import scale as _scale
+
 NUM_PARAMS = 17
-SERIES_ANGLE = 0.25  # rad; below this Exp and J_r use their Taylor series (row rotations are
-# s * |w| <= 20 ms * 5 rad/s = 0.1 rad)
 LAMBDA_MAX = 1e8  # damping at which a hypothesis gives up
-JIT = {"cache": True, "nogil": True, "fastmath": False}
 # lm_batch spreads hypotheses over the cores; the default workqueue layer must not be entered
 # from two threads at once (the node's worker and a test's), OpenMP or TBB may
 nb.config.THREADING_LAYER = "threadsafe"
-
-
-# --------------------------------------------------------------------------- 3-vector algebra
-
-
-@nb.njit(**JIT, inline="always")
-def _dot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@nb.njit(**JIT, inline="always")
-def _cross(a, b):
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-@nb.njit(**JIT, inline="always")
-def _add(a, b):
-    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
-
-
-@nb.njit(**JIT, inline="always")
-def _scale(s, a):
-    return (s * a[0], s * a[1], s * a[2])
-
-
-@nb.njit(**JIT, inline="always")
-def _mv(M, x):
-    """``M x`` for a matrix given as a tuple of rows."""
-    return (_dot(M[0], x), _dot(M[1], x), _dot(M[2], x))
-
-
-@nb.njit(**JIT, inline="always")
-def _mtv(M, x):
-    """``M^T x``."""
-    return _add(_add(_scale(x[0], M[0]), _scale(x[1], M[1])), _scale(x[2], M[2]))
-
-
-@nb.njit(**JIT, inline="always")
-def _mm(A, B):
-    """``A B``: row ``i`` of the product is ``B^T`` applied to row ``i`` of ``A``."""
-    return (_mtv(B, A[0]), _mtv(B, A[1]), _mtv(B, A[2]))
-
-
-@nb.njit(**JIT, inline="always")
-def _exp_jr(p):
-    """``Exp(p)`` and the right Jacobian ``J_r(p)`` (tuples of rows), as
-    :func:`rsvo_ros.core.geometry.so3_exp` and
-    :func:`rsvo_ros.core.geometry.so3_right_jacobian`."""
-    th2 = _dot(p, p)
-    if th2 < SERIES_ANGLE**2:
-        # Taylor series in th^2 (truncation < 1e-17 here): no sqrt, sin or cos per point
-        a = 1.0 + th2 * (-1 / 6 + th2 * (1 / 120 + th2 * (-1 / 5040 + th2 * (
-            1 / 362880 - th2 / 39916800))))  # fmt: skip
-        b = 0.5 + th2 * (-1 / 24 + th2 * (1 / 720 + th2 * (-1 / 40320 + th2 * (
-            1 / 3628800 - th2 / 479001600))))  # fmt: skip
-        c = 1 / 6 + th2 * (-1 / 120 + th2 * (1 / 5040 + th2 * (-1 / 362880 + th2 * (
-            1 / 39916800 - th2 / 6227020800))))  # fmt: skip
-    else:
-        th = np.sqrt(th2)
-        sn = np.sin(th)
-        a = sn / th
-        b = (1.0 - np.cos(th)) / th2
-        c = (th - sn) / (th2 * th)
-    x, y, z = p
-    d = 1.0 - b * th2
-    R = ((d + b * x * x, -a * z + b * x * y, a * y + b * x * z),
-         (a * z + b * x * y, d + b * y * y, -a * x + b * y * z),
-         (-a * y + b * x * z, a * x + b * y * z, d + b * z * z))  # fmt: skip
-    d = 1.0 - c * th2
-    J = ((d + c * x * x, b * z + c * x * y, -b * y + c * x * z),
-         (-b * z + c * x * y, d + c * y * y, b * x + c * y * z),
-         (b * y + c * x * z, -b * x + c * y * z, d + c * z * z))  # fmt: skip
-    return R, J
-
-
-@nb.njit(**JIT)
-def _rows(M):
-    return ((M[0, 0], M[0, 1], M[0, 2]), (M[1, 0], M[1, 1], M[1, 2]),
-            (M[2, 0], M[2, 1], M[2, 2]))  # fmt: skip
 
 
 @nb.njit(**JIT)

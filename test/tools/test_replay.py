@@ -30,7 +30,8 @@ def _topics(path):
         return {c.topic: c.msgcount for c in r.connections}
 
 
-@pytest.mark.parametrize("model, extra", [("gs", []), ("rs", []), ("rs", ["--no-motion-prior"])])
+@pytest.mark.parametrize("model, extra", [("gs", []), ("rs", []), ("rs", ["--no-motion-prior"]),
+                                          ("rs", ["--backend", "pairwise"])])
 def test_replay_writes_every_output(vehicle_bag, tmp_path, model, extra, capsys):
     out = tmp_path / model
     assert replay_main([str(vehicle_bag), "--output", str(out), "--model", model,
@@ -38,6 +39,12 @@ def test_replay_writes_every_output(vehicle_bag, tmp_path, model, extra, capsys)
     assert "frames posed" in capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
     assert summary["motion_prior"] == ("--no-motion-prior" not in extra)
+    assert summary["backend"] == ("pairwise" if "pairwise" in extra else "window")
+    if summary["backend"] == "window":  # its keyframes, and their velocities against the truth
+        kf = summary["keyframes"]
+        assert kf["count"] >= 2 and kf["w_compared"] >= 2
+        assert 0 <= kf["w_rel_error_median"] < 5
+        assert any(f["keyframe"] for f in summary["frames"])
     assert summary["frames_in"] == 8 == summary["frames_in_bag"]
     assert summary["frames_posed"] + summary["frames_skipped"] == summary["frames_in"]
     assert summary["frames_posed"] >= 7

@@ -1,0 +1,333 @@
+"""The local map of the window backend: keyframes, anchored inverse-depth landmarks, and the
+sliding-window rolling-shutter bundle adjustment over them.
+
+- Landmarks are track ids with an inverse depth ``rho`` along the bearing of their first
+  observation in the window, in the camera of that observation's own row (its anchor keyframe
+  and row time): ``X = p_a(s_a) + R_a(s_a) (x_a, y_a, 1) / rho``. They are triangulated when a
+  keyframe sees a track that an earlier keyframe of the window saw, from the two observations'
+  own row cameras.
+- The window BA (:meth:`LocalMap.optimize`) refines every keyframe's pose and ``(w, v)`` and
+  every landmark's ``rho`` (Cauchy loss, :func:`rsvo_ros.odometry.rs_projection.window_lm`,
+  a Schur complement on the inverse depths). Gauge: the oldest ``fixed_keyframes`` poses are
+  held (the first fixes position and orientation, the second the scale); their velocities stay
+  free. Each keyframe's velocity has a loose prior on the one tracking measured for it.
+- Leaving keyframes are dropped (not marginalised): the two oldest of the window are held
+  instead, which keeps the gauge and what the dropped ones established. Their landmarks are
+  re-anchored in the next keyframe that observed them, or dropped.
+- Culling: observations left more than ``outlier_px`` off after the BA are rejected; landmarks
+  with no observation besides their anchor are dropped.
+
+Pure numpy + the compiled kernels, no ROS.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rsvo_ros.core.geometry import so3_exp
+from rsvo_ros.odometry import rs_projection
+from rsvo_ros.odometry.frame import KeyFrame
+
+
+@dataclass
+class MapOptions:
+    window_size: int = 7  # keyframes in the window (issue: 5-10)
+    gauge: str = "poses"  # "scale": the oldest pose and one coordinate of the next one (the
+    # scale) are held; "poses": the oldest fixed_keyframes poses
+    fixed_keyframes: int = 2
+    min_parallax_deg: float = 1.0  # a new landmark's rays must meet at least at this angle
+    max_triangulation_px: float = 2.0  # reprojection error of a new landmark in both views
+    robust_px: float = 1.0  # Cauchy scale of the BA
+    outlier_px: float = 3.0  # observations this far off after the BA are rejected
+    ba_iterations: int = 10
+    # each keyframe's velocity prior, centred on the motion between its neighbouring frames
+    # (RS structure from motion alone is degenerate: under near-constant velocity a sheared
+    # scene and wrong velocities explain the images as well; the trajectory tells them apart)
+    prior_w_rad_s: float = 0.3  # angular std (rad/s)
+    prior_v_rel: float = 0.3  # linear std, relative to the neighbours' speed
+    prior_v_floor: float = 0.05  # ... and at least this (map units/s)
+
+
+@dataclass
+class Landmark:
+    anchor: int  # keyframe id
+    x: np.ndarray  # (2,) normalized bearing in the anchor's row camera
+    s: float  # the anchor observation's row time
+    rho: float  # inverse depth along (x, y, 1)
+
+
+@dataclass
+class BAReport:
+    cost: float
+    iterations: int
+    time_ms: float
+    observations: int
+    landmarks: int
+    rejected: int
+    dropped: int
+
+
+@dataclass
+class WindowProblem:
+    """One window BA: the keyframes' states (K,), the observations (n,) of landmarks (M,)
+    with their anchors, the velocity priors, and the free parameters (``col`` (K, 12): the
+    column of each frame parameter, -1 where held)."""
+
+    R: np.ndarray
+    p: np.ndarray
+    w: np.ndarray
+    v: np.ndarray
+    obs_kf: np.ndarray
+    obs_lm: np.ndarray
+    obs_x: np.ndarray
+    obs_s: np.ndarray
+    lm_anchor: np.ndarray
+    lm_x: np.ndarray
+    lm_s: np.ndarray
+    rho: np.ndarray
+    focal: float
+    robust_px: float
+    prior_mu: np.ndarray  # (K, 6)
+    prior_p2: np.ndarray  # (K, 6) squared inverse stds
+    col: np.ndarray
+    n_cols: int
+    lm_ids: list = field(default_factory=list)
+    obs_tid: list = field(default_factory=list)
+
+
+@dataclass
+class WindowSolution:
+    R: np.ndarray
+    p: np.ndarray
+    w: np.ndarray
+    v: np.ndarray
+    rho: np.ndarray
+    residuals: np.ndarray  # (n, 2) px
+    cost: float
+    iterations: int
+
+
+def solve_window(prob: WindowProblem, iterations: int) -> WindowSolution:
+    """The window BA's solver: Levenberg-Marquardt with a Schur complement on the inverse
+    depths, compiled (:func:`rsvo_ros.odometry.rs_projection.window_lm`). The README compares
+    it with scipy's sparse least squares and GTSAM on the same windows."""
+    R, p, w, v, rho, res, cost, it = rs_projection.window_lm(
+        prob.R, prob.p, prob.w, prob.v, prob.obs_kf, prob.obs_lm, prob.obs_x, prob.obs_s,
+        prob.lm_anchor, prob.lm_x, prob.lm_s, prob.rho, prob.focal, prob.robust_px,
+        prob.prior_mu, prob.prior_p2, prob.col, prob.n_cols, iterations)  # fmt: skip
+    return WindowSolution(R, p, w, v, rho, res, float(cost), int(it))
+
+
+def row_cameras(kf: KeyFrame, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, p)`` (n, 3, 3), (n, 3) of a keyframe's cameras at row times ``s`` (n,)."""
+    st = kf.state
+    R = st.R @ so3_exp(s[:, None] * st.w)
+    p = st.p + (s[:, None] * st.v) @ st.R.T
+    return R, p
+
+
+def triangulate(Ra, pa, xa, Rb, pb, xb):
+    """Midpoint triangulation of rays ``p + lambda R (x, y, 1)`` of two views, vectorized.
+
+    Returns the depths (n,) along each view's bearing (its z in that camera) and the parallax
+    angles (n,) in degrees."""
+    ba = np.einsum("nij,nj->ni", Ra, np.column_stack([xa, np.ones(len(xa))]))
+    bb = np.einsum("nij,nj->ni", Rb, np.column_stack([xb, np.ones(len(xb))]))
+    d = pb - pa
+    aa, bb2, ab = (ba * ba).sum(1), (bb * bb).sum(1), (ba * bb).sum(1)
+    ad, bd = (ba * d).sum(1), (bb * d).sum(1)
+    det = aa * bb2 - ab * ab
+    with np.errstate(divide="ignore", invalid="ignore"):
+        la = (bb2 * ad - ab * bd) / det
+        lb = (ab * ad - aa * bd) / det
+        cos = ab / np.sqrt(aa * bb2)
+    return la, lb, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+class LocalMap:
+    """Keyframes (oldest first) and the landmarks they share (track id -> :class:`Landmark`)."""
+
+    def __init__(self, focal: float, options: MapOptions | None = None):
+        self.focal = float(focal)
+        self.options = options or MapOptions()
+        self.keyframes: list[KeyFrame] = []
+        self.landmarks: dict[int, Landmark] = {}
+        self._index: dict[int, dict[int, int]] = {}  # keyframe id -> track id -> obs index
+
+    # ------------------------------------------------------------------ building
+
+    def add_keyframe(self, kf: KeyFrame) -> int:
+        """Insert a keyframe and triangulate the tracks it shares with earlier keyframes of the
+        window. Returns the number of new landmarks."""
+        self.keyframes.append(kf)
+        self._index[kf.id] = {int(i): n for n, i in enumerate(kf.obs.ids)}
+        return self._triangulate(kf)
+
+    def _triangulate(self, kf: KeyFrame) -> int:
+        o = self.options
+        new_ids = [int(i) for i in kf.obs.ids if int(i) not in self.landmarks]
+        added = 0
+        for older in self.keyframes[:-1]:  # earliest first: the largest baselines
+            idx_old = self._index[older.id]
+            shared = [i for i in new_ids if i in idx_old and i not in self.landmarks]
+            if not shared:
+                continue
+            ia = np.array([idx_old[i] for i in shared])
+            ib = np.array([self._index[kf.id][i] for i in shared])
+            Ra, pa = row_cameras(older, older.obs.s[ia])
+            Rb, pb = row_cameras(kf, kf.obs.s[ib])
+            xa, xb = older.obs.x[ia], kf.obs.x[ib]
+            la, lb, angle = triangulate(Ra, pa, xa, Rb, pb, xb)
+            ok = np.isfinite(la) & (la > 0) & (lb > 0) & (angle >= o.min_parallax_deg)
+            X = pa + la[:, None] * np.einsum("nij,nj->ni", Ra, np.column_stack(
+                [xa, np.ones(len(xa))]))  # fmt: skip
+            for R, p, x in ((Ra, pa, xa), (Rb, pb, xb)):
+                Xc = np.einsum("nji,nj->ni", R, X - p)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    err = self.focal * np.linalg.norm(Xc[:, :2] / Xc[:, 2:] - x, axis=1)
+                ok &= (Xc[:, 2] > 0) & (err < o.max_triangulation_px)
+            for n in np.flatnonzero(ok):
+                self.landmarks[shared[n]] = Landmark(older.id, xa[n].copy(),
+                                                     float(older.obs.s[ia[n]]),
+                                                     float(1.0 / la[n]))  # fmt: skip
+                added += 1
+        return added
+
+    def slide(self) -> int:
+        """Drop the oldest keyframes beyond the window; re-anchor their landmarks in the next
+        keyframe that observed them (else drop them). Returns the landmarks dropped."""
+        dropped = 0
+        while len(self.keyframes) > self.options.window_size:
+            old = self.keyframes[0]
+            pts = self.points(np.array([i for i, lm in self.landmarks.items()
+                                        if lm.anchor == old.id], np.int64))  # fmt: skip
+            self.keyframes.pop(0)
+            del self._index[old.id]
+            for tid, X in zip(*pts, strict=True):
+                tid = int(tid)
+                new_anchor = next((kf for kf in self.keyframes if tid in self._index[kf.id]
+                                   and tid not in kf.rejected), None)  # fmt: skip
+                if new_anchor is None:
+                    del self.landmarks[tid]
+                    dropped += 1
+                    continue
+                n = self._index[new_anchor.id][tid]
+                s = float(new_anchor.obs.s[n])
+                R, p = new_anchor.state.at(s)
+                depth = (R.T @ (X - p))[2]
+                if not depth > 0:
+                    del self.landmarks[tid]
+                    dropped += 1
+                    continue
+                self.landmarks[tid] = Landmark(new_anchor.id, new_anchor.obs.x[n].copy(), s,
+                                               float(1.0 / depth))
+        return dropped
+
+    # ------------------------------------------------------------------ queries
+
+    def points(self, ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Track ids (M,) and world points (M, 3) of the landmarks (all, or ``ids``)."""
+        ids = np.array(sorted(self.landmarks), np.int64) if ids is None else np.asarray(ids)
+        if not len(ids):
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        kf_pos = {kf.id: k for k, kf in enumerate(self.keyframes)}
+        lms = [self.landmarks[int(i)] for i in ids]
+        R, p, w, v = self._state_arrays()
+        X = rs_projection.landmark_points(
+            R, p, w, v, np.array([kf_pos[lm.anchor] for lm in lms], np.int64),
+            np.array([lm.x for lm in lms]), np.array([lm.s for lm in lms]),
+            np.array([lm.rho for lm in lms]))  # fmt: skip
+        return ids, X
+
+    def _state_arrays(self):
+        st = [kf.state for kf in self.keyframes]
+        return (np.stack([s.R for s in st]), np.stack([s.p for s in st]),
+                np.stack([s.w for s in st]), np.stack([s.v for s in st]))  # fmt: skip
+
+    # ------------------------------------------------------------------ the window BA
+
+    def problem(self) -> WindowProblem | None:
+        """The window BA as arrays (None when there is nothing to optimise)."""
+        o = self.options
+        K = len(self.keyframes)
+        lm_ids = list(self.landmarks)
+        if K < 2 or not lm_ids:
+            return None
+        kf_pos = {kf.id: k for k, kf in enumerate(self.keyframes)}
+        lm_pos = {tid: j for j, tid in enumerate(lm_ids)}
+        lm_anchor = np.array([kf_pos[self.landmarks[t].anchor] for t in lm_ids], np.int64)
+        obs_kf, obs_lm, obs_x, obs_s, obs_tid = [], [], [], [], []
+        for k, kf in enumerate(self.keyframes):
+            for n, tid in enumerate(kf.obs.ids.tolist()):
+                j = lm_pos.get(tid)
+                if j is None or lm_anchor[j] == k or tid in kf.rejected:
+                    continue
+                obs_kf.append(k)
+                obs_lm.append(j)
+                obs_x.append(kf.obs.x[n])
+                obs_s.append(kf.obs.s[n])
+                obs_tid.append(tid)
+        if not obs_kf:
+            return None
+        held = np.zeros((K, rs_projection.FRAME_PARAMS), bool)
+        if o.gauge == "poses":
+            held[:min(o.fixed_keyframes, K), :6] = True
+        else:  # the first pose, and the second's position along their baseline (the scale)
+            held[0, :6] = True
+            base = self.keyframes[1].state.p - self.keyframes[0].state.p
+            held[1, 3 + int(np.argmax(np.abs(base)))] = True
+        col = -np.ones((K, rs_projection.FRAME_PARAMS), np.int64)
+        col[~held] = np.arange(int((~held).sum()))  # held poses keep their velocities free
+        mu, p2 = np.zeros((K, 6)), np.zeros((K, 6))
+        for k, kf in enumerate(self.keyframes):
+            prior = kf.trajectory_velocity()
+            if prior is None:
+                continue
+            w_t, v_t = prior
+            mu[k] = np.concatenate([w_t, v_t])
+            sv = max(o.prior_v_rel * float(np.linalg.norm(v_t)), o.prior_v_floor)
+            p2[k] = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2], 3)
+        R, p, w, v = self._state_arrays()
+        return WindowProblem(
+            R, p, w, v, np.array(obs_kf, np.int64), np.array(obs_lm, np.int64),
+            np.array(obs_x), np.array(obs_s), lm_anchor,
+            np.array([self.landmarks[t].x for t in lm_ids]),
+            np.array([self.landmarks[t].s for t in lm_ids]),
+            np.array([self.landmarks[t].rho for t in lm_ids]), self.focal, o.robust_px, mu, p2,
+            col, int((~held).sum()), lm_ids, obs_tid)  # fmt: skip
+
+    def optimize(self, iterations: int | None = None) -> BAReport:
+        """The window BA (:func:`solve_window`); then rejects outlying observations and drops
+        landmarks left with no observation but their anchor."""
+        t0 = time.perf_counter()
+        prob = self.problem()
+        if prob is None:
+            return BAReport(0.0, 0, 0.0, 0, len(self.landmarks), 0, 0)
+        sol = solve_window(prob, iterations or self.options.ba_iterations)
+        for k, kf in enumerate(self.keyframes):
+            kf.state.R, kf.state.p = sol.R[k], sol.p[k]
+            kf.state.w, kf.state.v = sol.w[k], sol.v[k]
+        for j, t in enumerate(prob.lm_ids):
+            self.landmarks[t].rho = float(sol.rho[j])
+        bad = np.linalg.norm(sol.residuals, axis=1) > self.options.outlier_px
+        for k, tid in zip(prob.obs_kf[bad].tolist(), np.array(prob.obs_tid)[bad].tolist(),
+                          strict=True):  # fmt: skip
+            self.keyframes[k].rejected.add(tid)
+        dropped = self._drop_unobserved()
+        return BAReport(sol.cost, sol.iterations, (time.perf_counter() - t0) * 1e3,
+                        len(prob.obs_kf), len(self.landmarks), int(bad.sum()), dropped)
+
+    def _drop_unobserved(self) -> int:
+        count = {t: 0 for t in self.landmarks}
+        for kf in self.keyframes:
+            for tid in kf.obs.ids.tolist():
+                lm = self.landmarks.get(tid)
+                if lm is not None and lm.anchor != kf.id and tid not in kf.rejected:
+                    count[tid] += 1
+        gone = [t for t, c in count.items() if c == 0]
+        for t in gone:
+            del self.landmarks[t]
+        return len(gone)

@@ -1,0 +1,234 @@
+"""The pairwise backend: estimate each frame pair, chain the poses with a consistent scale (the
+paper's method).
+
+Pure numpy (no rclpy); :class:`rsvo_ros.odometry.pipeline.OdometryPipeline` feeds it.
+
+Chaining as in the paper: ``T_{k+1} = T_k [R t; 0 1]^-1`` with ``X_curr = R X_prev + t``, i.e.
+``T_world_curr = T_world_prev @ inv(T_curr_prev)``, applied to the cameras of the frames'
+middle rows (the reference row of the RS solver): their relative motion needs no velocity to be
+right, while the row-0 one inherits the velocities' errors (which from two views stay large
+under noise). Each frame's row-0 pose, what the pipeline reports (CONTRACTS.md), is where the
+chain of middle-row cameras was at the row-0 time: ``row_mid * tau`` before the frame's middle
+row, interpolated between consecutive middle-row poses. With a global shutter (``tau = 0``, or
+the GS models, whose reference row is row 0) this is the plain chain.
+
+Motion prior (RS, ``PipelineOptions.motion_prior``): the frames are one continuous motion, so
+each pair's velocity prior is centred on the constant velocity of that pair's own motion over
+its stamps' interval, with a much tighter translation part than the paper's experiment allows
+(from two views the velocities' common part, above all the linear velocity under forward
+motion, is barely observed: on the synthetic vehicle it came out 100-1000 % off, and warped
+the depths that carry the scale), and the previous pair's middle-row motion is one more start
+of the search. Measured over 16 vehicle sequences, the tighter prior and the extra start give
+the gain; where the prior is centred (constant velocity or zero) changes the ATE little, but
+only the constant velocity leaves the velocities unbiased.
+
+Scale: the first pair's baseline is ``initial_scale``; each later pair's ``|t|`` makes the
+depths of the points it shares with the previous pair agree (a line fitted to their inverse
+depths, which the estimator gives in each point's own row camera); without enough shared points
+it keeps the previous baseline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rsvo_ros.core.geometry import pose_at_row, so3_exp, so3_log
+from rsvo_ros.odometry.tracker import TrackedPair, undistort_points
+from rsvo_ros.twoview import LMOptions, RansacOptions, RelativePoseResult, estimate_relative_pose
+
+MIN_SHARED_FOR_SCALE = 8  # shared triangulated points needed to measure the relative scale
+MAX_DEPTH_IN_BASELINES = 40.0  # farther points do not vote on the scale
+MAX_SCALE_STEP = 1.25  # largest change of the baseline from one pair to the next
+HOLD_COVARIANCE_GROWTH = 4.0  # covariance multiplier of a held (not estimated) pose
+DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
+
+
+@dataclass
+class PairStep:
+    """What the pairwise chain says about one frame: the pose (``T_world_camera`` at row 0)
+    and covariance are the chain's after the step."""
+
+    status: str  # "posed", "held"
+    reason: str
+    num_inliers: int = 0
+    inlier_ratio: float = 0.0
+    scale: float = 0.0
+    relative: RelativePoseResult | None = None
+
+
+def _scale_from_inverse_depths(pairs: np.ndarray) -> float:
+    """``s`` with ``d_old = s d_new`` from (n, 2) depth pairs of the same points: a line through
+    the origin fitted to the inverse depths (``1/d_new = s / d_old``), which weights near points
+    (large parallax, small depth error) most, with one round of outlier trimming."""
+    rho_old, rho_new = 1.0 / pairs[:, 0], 1.0 / pairs[:, 1]
+    keep = np.ones(len(pairs), bool)
+    for _ in range(2):
+        s = float(rho_old[keep] @ rho_new[keep] / max(rho_old[keep] @ rho_old[keep], 1e-300))
+        r = rho_new - s * rho_old
+        mad = 1.4826 * float(np.median(np.abs(r[keep]))) + 1e-12
+        keep = np.abs(r) < 3.0 * mad
+        if keep.sum() < MIN_SHARED_FOR_SCALE:
+            break
+    return s
+
+
+def _interpolate(T: np.ndarray, a: float) -> np.ndarray:
+    """The fraction ``a`` of the motion ``T`` (4, 4): rotation ``Exp(a Log R)``, translation
+    ``a p`` (constant velocity between two poses; ``a`` outside [0, 1] extrapolates)."""
+    out = np.eye(4)
+    out[:3, :3] = so3_exp(a * so3_log(T[:3, :3]))
+    out[:3, 3] = a * T[:3, 3]
+    return out
+
+
+def _inverse(T: np.ndarray) -> np.ndarray:
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+class PairwiseChain:
+    """The chain of frame pairs; :meth:`step` with each tracked pair after the first frame."""
+
+    def __init__(self, K: np.ndarray, D: np.ndarray | None, line_delay: float, model: str,
+                 mode: str, ransac: RansacOptions, lm: LMOptions, initial_scale: float,
+                 motion_prior: bool, max_scale_change: float, seed: int):  # fmt: skip
+        self.K, self.D, self.line_delay = K, D, line_delay
+        self.model, self.mode, self.ransac, self.lm = model, mode, ransac, lm
+        self.initial_scale, self.motion_prior = initial_scale, motion_prior
+        self.max_scale_change, self.seed = max_scale_change, seed
+        self.T_world_cam = np.eye(4)
+        self._T_world_mid: np.ndarray | None = None  # the last posed frame's middle-row camera
+        self.covariance = np.zeros((6, 6))
+        self._prev_depths: dict[int, float] = {}  # track id -> metric depth in the last frame
+        self._last_baseline = initial_scale  # metres between middle-row cameras
+        # the last estimated motion between middle-row cameras: (R, unit t, seconds)
+        self._last_motion: tuple[np.ndarray, np.ndarray, float] | None = None
+
+    def restart(self, T_world_cam: np.ndarray, baseline: float) -> None:
+        """Go on from another estimate's pose with its last baseline (metres between frames;
+        0: keep this chain's)."""
+        self.T_world_cam = np.array(T_world_cam, float)
+        self._T_world_mid = None
+        self._prev_depths = {}
+        self._last_motion = None
+        if baseline > 0:
+            self._last_baseline = baseline
+
+    def step(self, pair: TrackedPair, interval: float, idx: int) -> PairStep:
+        """One frame pair (``interval`` s apart); updates the chain's pose and covariance."""
+        pts_prev = undistort_points(pair.pts_prev, self.K, self.D)
+        pts_curr = undistort_points(pair.pts_curr, self.K, self.D)
+        moving = self.motion_prior and self.model == "rs"
+        try:
+            rel = estimate_relative_pose(
+                pts_prev, pts_curr, self.K, self.line_delay, model=self.model,
+                seed=self.seed + idx, mode=self.mode,
+                ransac=self.ransac, lm=self.lm,
+                rows_prev=pair.pts_prev[:, 1], rows_curr=pair.pts_curr[:, 1],
+                frame_interval=interval if moving else None,
+                predicted=self._predicted_motion(interval) if moving else None,
+            )  # fmt: skip
+        except ValueError as exc:  # e.g. all tracks collapsed onto one point
+            self.hold()
+            return PairStep("held", f"estimation refused the pair: {exc}")
+        if not rel.ok:
+            self.hold()
+            return PairStep("held", f"no pose for this pair: {rel.reason}",
+                            num_inliers=rel.num_inliers, inlier_ratio=rel.inlier_ratio,
+                            relative=rel)
+        row_mid, tau = float(rel.row_ref), self.line_delay  # 0 for the GS models
+        R_m, t_m, _ = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev, rel.w_curr,
+                                  rel.v_curr, row_mid, tau)  # in units of |t| (row 0)
+        unit = float(np.linalg.norm(t_m))
+        if not np.isfinite(unit) or unit < 1e-9:
+            self.hold()
+            return PairStep("held", "no translation between the middle rows", relative=rel)
+        d_prev, d_curr = rel.depths_prev, rel.depths_curr  # in each point's own row camera
+        scale, scale_note = self._relative_scale(pair.ids, rel, d_prev, unit)
+        T_curr_prev = np.eye(4)
+        T_curr_prev[:3, :3], T_curr_prev[:3, 3] = R_m, t_m * scale
+        M = _inverse(T_curr_prev)  # the current middle-row camera in the previous one
+        # row 0 is exposed row_mid * tau before the middle row: where the frames' middle-row
+        # cameras were at those times, interpolated along the motion between them
+        lead = row_mid * tau / max(interval, 1e-9)
+        T_world_mid = self._T_world_mid
+        if T_world_mid is None:  # the first pair: place the previous frame's middle row
+            T_world_mid = self.T_world_cam @ _inverse(_interpolate(M, -lead))
+        T_mid_new = T_world_mid @ M
+        T_new = T_world_mid @ _interpolate(M, 1.0 - lead)
+        if not (np.isfinite(T_new).all() and np.isfinite(T_mid_new).all()):
+            self.hold()
+            return PairStep("held", "non-finite chained pose", relative=rel)
+        self.T_world_cam = T_new
+        self._T_world_mid = T_mid_new
+        self._accumulate_covariance(rel, scale)
+        depth = d_curr * scale
+        good = rel.inliers & np.isfinite(depth) & (depth > 0)
+        self._prev_depths = dict(zip(pair.ids[good].tolist(), depth[good].tolist(), strict=True))
+        self._last_baseline = scale * unit
+        self._last_motion = (R_m, t_m / unit, interval)
+        return PairStep("posed", scale_note, num_inliers=rel.num_inliers,
+                        inlier_ratio=rel.inlier_ratio, scale=scale, relative=rel)
+
+    # ------------------------------------------------------------------ internals
+
+    def _predicted_motion(self, interval: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The last estimated middle-row motion, its rotation scaled to ``interval`` (constant
+        velocity), as a start for this pair's search."""
+        if self._last_motion is None:
+            return None
+        R, t, last_interval = self._last_motion
+        return so3_exp(so3_log(R) * (interval / max(last_interval, 1e-9))), t
+
+    def _relative_scale(self, ids: np.ndarray, rel: RelativePoseResult, depths_prev: np.ndarray,
+                        unit: float) -> tuple[float, str]:
+        """Metres per unit of ``rel.t`` from the depths this pair shares with the previous one.
+
+        ``depths_prev`` (N,): this pair's depths in the previous frame, in units of ``rel.t``;
+        the previous pair stored the same points' metric depths. Only points within
+        ``MAX_DEPTH_IN_BASELINES`` vote; the fit is on inverse depths, which weights near
+        points (small depth error) most. The result is used as measured, not blended with the
+        previous baseline: each pair's scale is measured against depths the previous scale
+        produced, so a pair's error is undone by the next one instead of adding up, while any
+        blending would keep a part of every real change of speed out for good (a steadily
+        accelerating vehicle then drifts in scale). A change of the baseline between middle
+        rows (``unit`` of them per unit of ``rel.t``) beyond ``MAX_SCALE_STEP`` is clipped.
+        """
+        pairs = []
+        for i, d_new, inl in zip(ids.tolist(), depths_prev, rel.inliers, strict=True):
+            d_old = self._prev_depths.get(i)
+            if (inl and d_old is not None and np.isfinite(d_new)
+                    and 0 < d_new < MAX_DEPTH_IN_BASELINES):  # fmt: skip
+                pairs.append((d_old, d_new))
+        last = self._last_baseline
+        if len(pairs) < MIN_SHARED_FOR_SCALE:
+            why = "no shared depths" if not self._prev_depths else f"{len(pairs)} shared"
+            return last / unit, f"scale from the previous baseline ({why})"
+        measured = _scale_from_inverse_depths(np.array(pairs)) * unit
+        lim = self.max_scale_change
+        if not (np.isfinite(measured) and last / lim <= measured <= last * lim):
+            return last / unit, f"baseline {measured:.3g} rejected: kept the previous one"
+        return float(np.clip(measured, last / MAX_SCALE_STEP, last * MAX_SCALE_STEP)) / unit, ""
+
+    def _accumulate_covariance(self, rel: RelativePoseResult, scale: float) -> None:
+        """Random-walk growth: the pair's covariance, rotated into the world frame."""
+        R_wc = self.T_world_cam[:3, :3]
+        rel_cov = np.asarray(rel.covariance, float)
+        if not np.isfinite(rel_cov).all():
+            rel_cov = np.diag([1e-4, 1e-4, 1e-4, 1.0, 1.0, 1.0])
+        step = np.zeros((6, 6))
+        step[:3, :3] = R_wc @ rel_cov[3:, 3:] @ R_wc.T * scale**2 + np.eye(3) * 1e-9
+        step[3:, 3:] = R_wc @ rel_cov[:3, :3] @ R_wc.T + np.eye(3) * 1e-12
+        # a poor fit counts more: inflate by the share of outliers
+        step *= 1.0 / max(rel.inlier_ratio, 0.05) ** 2
+        self.covariance = self.covariance + step
+
+    def hold(self) -> None:
+        """Keep the pose; the uncertainty grows; depths of the skipped pair are unknown."""
+        grow = np.diag([DEFAULT_POSITION_VARIANCE] * 3 + [1e-3] * 3) * HOLD_COVARIANCE_GROWTH
+        self.covariance = self.covariance + grow * max(self._last_baseline, 1e-3) ** 2
+        self._prev_depths = {}

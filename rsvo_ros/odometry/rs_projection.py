@@ -1,0 +1,446 @@
+"""Rolling-shutter reprojection: residuals and Jacobians for tracking and the window BA (numba).
+
+A frame's state is its camera at the reference row (the principal point's row) in the world,
+``R`` (world <- camera) and ``p`` (position), and its instantaneous motion ``w`` (rad/s) and
+``v`` (map units/s) in that camera's frame. The camera that exposed row ``r`` is the reference
+one moved by ``s = (r - row_ref) * tau`` seconds of that motion (CONTRACTS.md's convention,
+re-expressed at the reference row):
+
+    R(s) = R Exp(s w),   p(s) = p + R (s v).
+
+A world point ``X`` seen in row ``r`` is at ``X_c = Exp(-s w) (R^T (X - p) - s v)`` in that
+row's camera and projects to ``(X_c0 / X_c2, X_c1 / X_c2)`` (normalized coordinates); residuals
+are in pixels (times the focal length). Increments: ``R <- R Exp(dtheta)``, ``p <- p + dp``,
+``w <- w + dw``, ``v <- v + dv``; a frame's 12 parameters are ``[dtheta, dp, dw, dv]``.
+
+Landmarks of the window are inverse depths ``rho`` along the bearing ``b_a = (x_a, y_a, 1)`` of
+their first observation, in the camera of the anchor keyframe's row ``s_a``:
+``X = p_a(s_a) + R_a(s_a) b_a / rho``.
+
+Pure numba/numpy, no ROS. ``test/odometry/test_rs_projection.py`` checks every Jacobian against
+finite differences.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from rsvo_ros.core.small3 import JIT
+from rsvo_ros.core.small3 import add as _add
+from rsvo_ros.core.small3 import cross as _cross
+from rsvo_ros.core.small3 import exp_jr as _exp_jr
+from rsvo_ros.core.small3 import mm as _mm
+from rsvo_ros.core.small3 import mtv as _mtv
+from rsvo_ros.core.small3 import mv as _mv
+from rsvo_ros.core.small3 import rows as _rows
+from rsvo_ros.core.small3 import scale as _scale
+
+FRAME_PARAMS = 12
+MIN_DEPTH = 1e-6  # a point this close to (or behind) the camera plane gives no residual
+RHO_MIN, RHO_MAX = 1e-4, 1e3  # inverse depths are kept inside these bounds
+LAMBDA_MAX = 1e10
+
+
+# --------------------------------------------------------------------------- small algebra
+
+
+@nb.njit(**JIT, inline="always")
+def _skew_mul(a, M):
+    """``[a]x M`` for a 3x3 ``M`` given as tuple of rows: columns ``a x M[:, j]``."""
+    c0 = _cross(a, (M[0][0], M[1][0], M[2][0]))
+    c1 = _cross(a, (M[0][1], M[1][1], M[2][1]))
+    c2 = _cross(a, (M[0][2], M[1][2], M[2][2]))
+    return ((c0[0], c1[0], c2[0]), (c0[1], c1[1], c2[1]), (c0[2], c1[2], c2[2]))
+
+
+@nb.njit(**JIT, inline="always")
+def _row_pose(R, p, w, v, s):
+    """(R(s), p(s)) as tuples."""
+    Es, _ = _exp_jr(_scale(s, w))
+    return _mm(R, Es), _add(p, _mv(R, _scale(s, v)))
+
+
+# --------------------------------------------------------------------------- one observation
+
+
+@nb.njit(**JIT)
+def _observe(R, p, w, v, s, X, x_obs, focal, Jf, JX):
+    """Residual (2,) in px of world point ``X`` seen at normalized ``x_obs`` in the row ``s`` of
+    a frame; fills ``Jf`` (2, 12) with its derivative by the frame's parameters and ``JX``
+    (2, 3) by ``X``. Returns (ex, ey, ok): ok False behind the camera."""
+    d = (X[0] - p[0], X[1] - p[1], X[2] - p[2])
+    q = _mtv(R, d)  # R^T (X - p)
+    Y = (q[0] - s * v[0], q[1] - s * v[1], q[2] - s * v[2])
+    phi = _scale(-s, w)
+    E, Jr = _exp_jr(phi)
+    Xc = _mv(E, Y)
+    if Xc[2] < MIN_DEPTH:
+        return 0.0, 0.0, False
+    iz = 1.0 / Xc[2]
+    ux, uy = Xc[0] * iz, Xc[1] * iz
+    ex, ey = focal * (ux - x_obs[0]), focal * (uy - x_obs[1])
+    # A = focal dpi/dXc (2x3)
+    A0 = (focal * iz, 0.0, -focal * ux * iz)
+    A1 = (0.0, focal * iz, -focal * uy * iz)
+    AE0 = _mtv(E, A0)  # row 0 of A E
+    AE1 = _mtv(E, A1)
+    # dXc/dtheta = E [q]x ; a row of it: a^T [q]x = (a x q)^T
+    t0, t1 = _cross(AE0, q), _cross(AE1, q)
+    # dXc/dp = -E R^T : row (A E) (-R^T) = -(R (A E)^T)^T
+    P0, P1 = _mv(R, AE0), _mv(R, AE1)
+    # dXc/dw = s E [Y]x J_r(phi) : a row of it s (AE_r x Y)^T J_r
+    c0, c1 = _cross(AE0, Y), _cross(AE1, Y)
+    W0, W1 = _scale(s, _mtv(Jr, c0)), _scale(s, _mtv(Jr, c1))
+    for j in range(3):
+        Jf[0, j], Jf[1, j] = t0[j], t1[j]
+        Jf[0, 3 + j], Jf[1, 3 + j] = -P0[j], -P1[j]
+        Jf[0, 6 + j], Jf[1, 6 + j] = W0[j], W1[j]
+        Jf[0, 9 + j], Jf[1, 9 + j] = -s * AE0[j], -s * AE1[j]
+        JX[0, j], JX[1, j] = P0[j], P1[j]  # dXc/dX = E R^T
+    return ex, ey, True
+
+
+@nb.njit(**JIT)
+def _landmark(Ra, pa, wa, va, sa, xa, rho, JA, Jrho):
+    """World point of an anchored inverse-depth landmark and its derivatives: ``JA`` (3, 12)
+    by the anchor frame's parameters, ``Jrho`` (3,) by ``rho``."""
+    b = (xa[0] / rho, xa[1] / rho, 1.0 / rho)
+    Ea, Jra = _exp_jr(_scale(sa, wa))
+    Eb = _mv(Ea, b)
+    m = _add(_scale(sa, va), Eb)
+    X = _add(pa, _mv(Ra, m))
+    # dX/dtheta_a = -R_a [m]x ; dX/dp_a = I ; dX/dw_a = -s_a R_a E_a [b]x J_r ; dX/dv_a = s_a R_a
+    Rm = _skew_mul(m, ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))  # [m]x
+    RaM = _mm(Ra, Rm)
+    RaE = _mm(Ra, Ea)
+    bJ = _mm(_skew_mul(b, ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))), Jra)
+    RaEbJ = _mm(RaE, bJ)
+    for i in range(3):
+        for j in range(3):
+            JA[i, j] = -RaM[i][j]
+            JA[i, 3 + j] = 1.0 if i == j else 0.0
+            JA[i, 6 + j] = -sa * RaEbJ[i][j]
+            JA[i, 9 + j] = sa * Ra[i][j]
+    ie = -1.0 / rho
+    Xa = _mv(RaE, (xa[0], xa[1], 1.0))
+    for i in range(3):
+        Jrho[i] = Xa[i] * ie / rho  # d(b)/drho = -b / rho
+    return X
+
+
+# --------------------------------------------------------------------------- tracking
+
+
+@nb.njit(**JIT)
+def _rot_update(R, dth):
+    dR, _ = _exp_jr((dth[0], dth[1], dth[2]))
+    Rr = _mm(_rows(R), dR)
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = Rr[i][j]
+    return out
+
+
+@nb.njit(**JIT)
+def _track_cost(R, p, w, v, X, x_obs, s, focal, robust, prior_mu, prior_p2):
+    Rr = _rows(R)
+    pp, ww, vv = (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2])
+    Jf = np.empty((2, FRAME_PARAMS))
+    JX = np.empty((2, 3))
+    c = 0.0
+    for i in range(X.shape[0]):
+        ex, ey, ok = _observe(Rr, pp, ww, vv, s[i], (X[i, 0], X[i, 1], X[i, 2]),
+                              (x_obs[i, 0], x_obs[i, 1]), focal, Jf, JX)  # fmt: skip
+        e2 = ex * ex + ey * ey if ok else 100.0 * robust * robust
+        c += robust * robust * np.log1p(e2 / (robust * robust))
+    for j in range(3):
+        c += prior_p2[j] * (w[j] - prior_mu[j]) ** 2
+        c += prior_p2[3 + j] * (v[j] - prior_mu[3 + j]) ** 2
+    return c
+
+
+@nb.njit(**JIT)
+def track_frame(R, p, w, v, X, x_obs, s, focal, robust, prior_mu, prior_p2, iterations):
+    """Motion-only RS pose of one frame against fixed world points (Levenberg-Marquardt,
+    Cauchy loss of scale ``robust`` px; a prior ``sum(prior_p2 (vel - prior_mu)^2)`` on
+    ``[w, v]``). ``X`` (n, 3), ``x_obs`` (n, 2) normalized, ``s`` (n,) row times.
+    Returns R, p, w, v, residuals (n, 2) px, cost and the Gauss-Newton Hessian (12, 12)."""
+    R, p, w, v = R.copy(), p.copy(), w.copy(), v.copy()
+    n = X.shape[0]
+    Jf = np.empty((2, FRAME_PARAMS))
+    JX = np.empty((2, 3))
+    H = np.zeros((FRAME_PARAMS, FRAME_PARAMS))
+    g = np.zeros(FRAME_PARAMS)
+    lam = 1e-3
+    cost = _track_cost(R, p, w, v, X, x_obs, s, focal, robust, prior_mu, prior_p2)
+    for _ in range(iterations):
+        H[:] = 0.0
+        g[:] = 0.0
+        Rr = _rows(R)
+        pp, ww, vv = (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2])
+        for i in range(n):
+            ex, ey, ok = _observe(Rr, pp, ww, vv, s[i], (X[i, 0], X[i, 1], X[i, 2]),
+                                  (x_obs[i, 0], x_obs[i, 1]), focal, Jf, JX)  # fmt: skip
+            if not ok:
+                continue
+            wt = 1.0 / (1.0 + (ex * ex + ey * ey) / (robust * robust))
+            for a in range(FRAME_PARAMS):
+                ja0, ja1 = wt * Jf[0, a], wt * Jf[1, a]
+                g[a] += ja0 * ex + ja1 * ey
+                for b in range(a, FRAME_PARAMS):
+                    H[a, b] += ja0 * Jf[0, b] + ja1 * Jf[1, b]
+        for a in range(FRAME_PARAMS):
+            for b in range(a):
+                H[a, b] = H[b, a]
+        for j in range(3):
+            H[6 + j, 6 + j] += prior_p2[j]
+            g[6 + j] += prior_p2[j] * (w[j] - prior_mu[j])
+            H[9 + j, 9 + j] += prior_p2[3 + j]
+            g[9 + j] += prior_p2[3 + j] * (v[j] - prior_mu[3 + j])
+        improved = False
+        while lam < LAMBDA_MAX:
+            A = H.copy()
+            for a in range(FRAME_PARAMS):
+                A[a, a] += lam * max(H[a, a], 1e-9)
+            delta = np.linalg.solve(A, -g)
+            R_c = _rot_update(R, delta[0:3])
+            p_c, w_c, v_c = p + delta[3:6], w + delta[6:9], v + delta[9:12]
+            c_new = _track_cost(R_c, p_c, w_c, v_c, X, x_obs, s, focal, robust, prior_mu,
+                                prior_p2)  # fmt: skip
+            if np.isfinite(c_new) and c_new < cost:
+                rel = (cost - c_new) / max(cost, 1e-300)
+                R, p, w, v, cost = R_c, p_c, w_c, v_c, c_new
+                lam = max(lam / 3.0, 1e-9)
+                improved = rel > 1e-9
+                break
+            lam *= 4.0
+        if not improved:
+            break
+    res = np.empty((n, 2))
+    Rr = _rows(R)
+    pp, ww, vv = (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2])
+    for i in range(n):
+        ex, ey, ok = _observe(Rr, pp, ww, vv, s[i], (X[i, 0], X[i, 1], X[i, 2]),
+                              (x_obs[i, 0], x_obs[i, 1]), focal, Jf, JX)  # fmt: skip
+        res[i, 0] = ex if ok else np.inf
+        res[i, 1] = ey if ok else np.inf
+    return R, p, w, v, res, cost, H
+
+
+# --------------------------------------------------------------------------- the window
+
+
+@nb.njit(**JIT)
+def _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
+                 robust, mu, p2, res):  # fmt: skip
+    """Robust cost of the window (and each observation's residual into ``res`` (n, 2))."""
+    JA = np.empty((3, FRAME_PARAMS))
+    Jrho = np.empty(3)
+    Jf = np.empty((2, FRAME_PARAMS))
+    JX = np.empty((2, 3))
+    c = 0.0
+    r2 = robust * robust
+    for o in range(obs_kf.shape[0]):
+        k, j = obs_kf[o], obs_lm[o]
+        a = lm_anchor[j]
+        X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
+                      (v[a, 0], v[a, 1], v[a, 2]), lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j],
+                      JA, Jrho)  # fmt: skip
+        ex, ey, ok = _observe(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]),
+                              (w[k, 0], w[k, 1], w[k, 2]), (v[k, 0], v[k, 1], v[k, 2]),
+                              obs_s[o], X, (obs_x[o, 0], obs_x[o, 1]), focal, Jf, JX)
+        if not ok:
+            ex = ey = 10.0 * robust
+        res[o, 0], res[o, 1] = ex, ey
+        c += r2 * np.log1p((ex * ex + ey * ey) / r2)
+    for k in range(R.shape[0]):
+        for j in range(3):
+            c += p2[k, j] * (w[k, j] - mu[k, j]) ** 2
+            c += p2[k, 3 + j] * (v[k, j] - mu[k, 3 + j]) ** 2
+    return c
+
+
+@nb.njit(**JIT)
+def _window_system(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                   focal, robust, mu, p2, col, Hcc, gc, Hcp, hpp, gp):  # fmt: skip
+    """Normal equations of the window with IRLS weights of the Cauchy loss: the frames'
+    block ``Hcc``/``gc`` (columns ``col[k, i]``, -1 for fixed parameters), the frame x
+    landmark blocks ``Hcp`` (K, M, 12), the landmarks' ``hpp``/``gp`` (M,)."""
+    K = R.shape[0]
+    JA = np.empty((3, FRAME_PARAMS))
+    Jrho = np.empty(3)
+    Jf = np.empty((2, FRAME_PARAMS))
+    JX = np.empty((2, 3))
+    Ja = np.empty((2, FRAME_PARAMS))
+    jr = np.empty(2)
+    Hcc[:] = 0.0
+    gc[:] = 0.0
+    Hcp[:] = 0.0
+    hpp[:] = 0.0
+    gp[:] = 0.0
+    r2 = robust * robust
+    for o in range(obs_kf.shape[0]):
+        k, j = obs_kf[o], obs_lm[o]
+        a = lm_anchor[j]
+        X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
+                      (v[a, 0], v[a, 1], v[a, 2]), lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j],
+                      JA, Jrho)  # fmt: skip
+        ex, ey, ok = _observe(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]),
+                              (w[k, 0], w[k, 1], w[k, 2]), (v[k, 0], v[k, 1], v[k, 2]),
+                              obs_s[o], X, (obs_x[o, 0], obs_x[o, 1]), focal, Jf, JX)
+        if not ok:
+            continue
+        wt = 1.0 / (1.0 + (ex * ex + ey * ey) / r2)
+        for r in range(2):
+            for i in range(FRAME_PARAMS):
+                Ja[r, i] = JX[r, 0] * JA[0, i] + JX[r, 1] * JA[1, i] + JX[r, 2] * JA[2, i]
+            jr[r] = JX[r, 0] * Jrho[0] + JX[r, 1] * Jrho[1] + JX[r, 2] * Jrho[2]
+        e = (ex, ey)
+        hpp[j] += wt * (jr[0] * jr[0] + jr[1] * jr[1])
+        gp[j] += wt * (jr[0] * ex + jr[1] * ey)
+        for side in range(2):
+            f = k if side == 0 else a
+            J1 = Jf if side == 0 else Ja
+            for i in range(FRAME_PARAMS):
+                Hcp[f, j, i] += wt * (J1[0, i] * jr[0] + J1[1, i] * jr[1])
+                ci = col[f, i]
+                if ci < 0:
+                    continue
+                gc[ci] += wt * (J1[0, i] * e[0] + J1[1, i] * e[1])
+                for side2 in range(2):
+                    f2 = k if side2 == 0 else a
+                    J2 = Jf if side2 == 0 else Ja
+                    for i2 in range(FRAME_PARAMS):
+                        c2 = col[f2, i2]
+                        if c2 < 0:
+                            continue
+                        Hcc[ci, c2] += wt * (J1[0, i] * J2[0, i2] + J1[1, i] * J2[1, i2])
+    for kk in range(K):  # velocity priors
+        for i in range(6):
+            ci = col[kk, 6 + i]
+            if ci < 0:
+                continue
+            val = w[kk, i] if i < 3 else v[kk, i - 3]
+            Hcc[ci, ci] += p2[kk, i]
+            gc[ci] += p2[kk, i] * (val - mu[kk, i])
+
+
+@nb.njit(**JIT)
+def window_lm(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
+              robust, mu, p2, col, n_cols, iterations):  # fmt: skip
+    """Levenberg-Marquardt over the window: the free frame parameters (``col``) and every
+    landmark's inverse depth, the landmarks eliminated by the Schur complement (their blocks
+    are 1 x 1). Returns the new R, p, w, v, rho, the residuals (n_obs, 2), the final cost and
+    the iterations run."""
+    R, p, w, v, rho = R.copy(), p.copy(), w.copy(), v.copy(), rho.copy()
+    K, M = R.shape[0], rho.shape[0]
+    Hcc = np.zeros((n_cols, n_cols))
+    gc = np.zeros(n_cols)
+    Hcp = np.zeros((K, M, FRAME_PARAMS))
+    hpp = np.zeros(M)
+    gp = np.zeros(M)
+    res = np.zeros((obs_kf.shape[0], 2))
+    cost = _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                        focal, robust, mu, p2, res)  # fmt: skip
+    # which frames see each landmark (its anchor and its observers)
+    seen = np.zeros((M, K), np.bool_)
+    for o in range(obs_kf.shape[0]):
+        seen[obs_lm[o], obs_kf[o]] = True
+    for j in range(M):
+        seen[j, lm_anchor[j]] = True
+    lam = 1e-4
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007
+        _window_system(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                       focal, robust, mu, p2, col, Hcc, gc, Hcp, hpp, gp)
+        accepted = False
+        while lam < LAMBDA_MAX:
+            # Schur complement on the landmarks (damped like the rest)
+            S = Hcc.copy()
+            b = -gc
+            for c in range(n_cols):
+                S[c, c] += lam * max(Hcc[c, c], 1e-9)
+            inv = np.empty(M)
+            for j in range(M):
+                inv[j] = 1.0 / (hpp[j] * (1.0 + lam) + 1e-12)
+            for j in range(M):
+                for k1 in range(K):
+                    if not seen[j, k1]:
+                        continue
+                    for i1 in range(FRAME_PARAMS):
+                        c1 = col[k1, i1]
+                        if c1 < 0:
+                            continue
+                        h1 = Hcp[k1, j, i1] * inv[j]
+                        b[c1] += h1 * gp[j]
+                        for k2 in range(K):
+                            if not seen[j, k2]:
+                                continue
+                            for i2 in range(FRAME_PARAMS):
+                                c2 = col[k2, i2]
+                                if c2 >= 0:
+                                    S[c1, c2] -= h1 * Hcp[k2, j, i2]
+            dc = np.linalg.solve(S, b)
+            R_c, p_c, w_c, v_c = R.copy(), p.copy(), w.copy(), v.copy()
+            for k in range(K):
+                d = np.zeros(FRAME_PARAMS)
+                for i in range(FRAME_PARAMS):
+                    if col[k, i] >= 0:
+                        d[i] = dc[col[k, i]]
+                R_c[k] = _rot_update(R[k], d[0:3])
+                p_c[k] = p[k] + d[3:6]
+                w_c[k] = w[k] + d[6:9]
+                v_c[k] = v[k] + d[9:12]
+            rho_c = rho.copy()
+            for j in range(M):
+                acc = gp[j]
+                for k in range(K):
+                    if not seen[j, k]:
+                        continue
+                    for i in range(FRAME_PARAMS):
+                        if col[k, i] >= 0:
+                            acc += Hcp[k, j, i] * dc[col[k, i]]
+                rho_c[j] = min(max(rho[j] - acc * inv[j], RHO_MIN), RHO_MAX)
+            c_new = _window_cost(R_c, p_c, w_c, v_c, obs_kf, obs_lm, obs_x, obs_s, lm_anchor,
+                                 lm_x, lm_s, rho_c, focal, robust, mu, p2, res)  # fmt: skip
+            if np.isfinite(c_new) and c_new < cost:
+                rel = (cost - c_new) / max(cost, 1e-300)
+                R, p, w, v, rho, cost = R_c, p_c, w_c, v_c, rho_c, c_new
+                lam = max(lam / 3.0, 1e-9)
+                accepted = rel > 1e-8
+                break
+            lam *= 4.0
+        if not accepted:
+            break
+    _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
+                 robust, mu, p2, res)
+    return R, p, w, v, rho, res, cost, it
+
+
+@nb.njit(**JIT)
+def landmark_points(R, p, w, v, lm_anchor, lm_x, lm_s, rho):
+    """World points (M, 3) of the window's landmarks."""
+    M = rho.shape[0]
+    out = np.empty((M, 3))
+    JA = np.empty((3, FRAME_PARAMS))
+    Jrho = np.empty(3)
+    for j in range(M):
+        a = lm_anchor[j]
+        X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
+                      (v[a, 0], v[a, 1], v[a, 2]), lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j],
+                      JA, Jrho)  # fmt: skip
+        out[j, 0], out[j, 1], out[j, 2] = X
+    return out
+
+
+@nb.njit(**JIT)
+def row_camera(R, p, w, v, s):
+    """(R(s) (3, 3), p(s) (3,)) of a frame's camera at row time ``s``."""
+    Rs, ps = _row_pose(_rows(R), (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2]), s)
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = Rs[i][j]
+    return out, np.array([ps[0], ps[1], ps[2]])
