@@ -90,3 +90,15 @@ def exp_jr(p):
 def rows(M):
     return ((M[0, 0], M[0, 1], M[0, 2]), (M[1, 0], M[1, 1], M[1, 2]),
             (M[2, 0], M[2, 1], M[2, 2]))  # fmt: skip
+
+
+@nb.njit(**JIT)
+def rot_update(R, dth):
+    """``R @ Exp(dth)`` as a new (3, 3) array: the SO(3) retraction both LM kernels use."""
+    dR, _ = exp_jr((dth[0], dth[1], dth[2]))
+    Rr = mm(rows(R), dR)
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = Rr[i][j]
+    return out

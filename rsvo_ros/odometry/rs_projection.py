@@ -33,6 +33,7 @@ from rsvo_ros.core.small3 import exp_jr as _exp_jr
 from rsvo_ros.core.small3 import mm as _mm
 from rsvo_ros.core.small3 import mtv as _mtv
 from rsvo_ros.core.small3 import mv as _mv
+from rsvo_ros.core.small3 import rot_update as _rot_update
 from rsvo_ros.core.small3 import rows as _rows
 from rsvo_ros.core.small3 import scale as _scale
 
@@ -130,17 +131,6 @@ def _landmark(Ra, pa, wa, va, sa, xa, rho, JA, Jrho):
 
 
 # --------------------------------------------------------------------------- tracking
-
-
-@nb.njit(**JIT)
-def _rot_update(R, dth):
-    dR, _ = _exp_jr((dth[0], dth[1], dth[2]))
-    Rr = _mm(_rows(R), dR)
-    out = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = Rr[i][j]
-    return out
 
 
 @nb.njit(**JIT)

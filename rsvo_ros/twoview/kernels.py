@@ -32,6 +32,7 @@ from rsvo_ros.core.small3 import exp_jr as _exp_jr
 from rsvo_ros.core.small3 import mm as _mm
 from rsvo_ros.core.small3 import mtv as _mtv
 from rsvo_ros.core.small3 import mv as _mv
+from rsvo_ros.core.small3 import rot_update as _rot_update
 from rsvo_ros.core.small3 import rows as _rows
 from rsvo_ros.core.small3 import scale as _scale
 
@@ -290,12 +291,7 @@ def _cholesky_solve(A, b):
 @nb.njit(**JIT)
 def _retract(R, t, vel, delta):
     """:meth:`rsvo_ros.twoview.state.RSBatch.retract` of one state; new arrays."""
-    dR, _ = _exp_jr((delta[0], delta[1], delta[2]))
-    Rr = _mm(_rows(R), dR)
-    R_new = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            R_new[i, j] = Rr[i][j]
+    R_new = _rot_update(R, delta)
     tt = (t[0], t[1], t[2])
     b1, b2 = _tangent(tt)
     tn = _add(tt, _add(_scale(delta[3], b1), _scale(delta[4], b2)))
