@@ -165,7 +165,7 @@ def test_colcon_installed_node_runs_the_same_graph(graph, small_bag, tmp_path):
     # pairwise backend, whose kernels are all warmed up.
     data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002",
                                          "-p", "backend:=pairwise"],
-                      ["--rate", "0.25"], FRAMES,
+                      ["--rate", "0.1"], FRAMES,
                       node_cmd=[str(install / "lib" / "rsvo_ros" / "rsvo_node")])
     assert len(data["odom"]) == FRAMES, (data["diagnostics"][-1:], graph.log("node"))
 
