@@ -29,3 +29,6 @@ else
     echo "$stamp" > "$stamp_file"
     echo "[setup] done"
 fi
+# tf2_msgs for /tf (not on PyPI): found, or built from its interface definition; a failed build
+# is reported and leaves the rest usable (the node then says it cannot publish /tf)
+bash "$REPO_ROOT/launch_scripts/build_tf2_msgs.sh" "$VENV" || true

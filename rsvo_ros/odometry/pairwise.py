@@ -35,7 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from rsvo_ros.core.geometry import pose_at_row, so3_exp, so3_log
-from rsvo_ros.odometry.tracker import TrackedPair, undistort_points
+from rsvo_ros.core.lens import undistort_points
+from rsvo_ros.odometry.tracker import TrackedPair
 from rsvo_ros.twoview import LMOptions, RansacOptions, RelativePoseResult, estimate_relative_pose
 
 MIN_SHARED_FOR_SCALE = 8  # shared triangulated points needed to measure the relative scale

@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rsvo_ros.core.lens import LensModel, as_lens, undistort_points
 from rsvo_ros.odometry.frame import FrameState, Observations
 from rsvo_ros.odometry.pairwise import PairwiseChain
-from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions, undistort_points
+from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.odometry.window import (
     WindowOdometry,
     WindowOptions,
@@ -85,8 +86,10 @@ class FrameResult:
 class OdometryPipeline:
     """Feed frames with :meth:`process`; poses are ``T_world_camera`` at row-0 times."""
 
-    def __init__(self, K: np.ndarray, D: np.ndarray | None, line_delay: float,
+    def __init__(self, K: np.ndarray, D: LensModel | np.ndarray | None, line_delay: float,
                  options: PipelineOptions | None = None):  # fmt: skip
+        """``D``: the lens (:class:`LensModel`, bare plumb_bob / rational_polynomial
+        coefficients, or None for an undistorted image)."""
         self.options = options or PipelineOptions()
         if self.options.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.options.backend!r}")
@@ -94,23 +97,22 @@ class OdometryPipeline:
         self.tracker = FeatureTracker(self.options.tracker)
         self.reset()
 
-    def set_camera(self, K: np.ndarray, D: np.ndarray | None, line_delay: float) -> None:
+    def set_camera(self, K: np.ndarray, D: LensModel | np.ndarray | None,
+                   line_delay: float) -> None:  # fmt: skip
         K = np.asarray(K, float)
         if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"camera matrix K must be a finite 3x3 with positive focal "
                              f"lengths, got {K.tolist()}")  # fmt: skip
         if not np.isfinite(line_delay) or line_delay < 0:
             raise ValueError(f"line_delay must be finite and >= 0, got {line_delay}")
-        D = None if D is None or len(D) == 0 else np.asarray(D, float)
+        D = as_lens(D)
         changed = hasattr(self, "window") and not self._same_camera(K, D, float(line_delay))
         self.K, self.D, self.line_delay = K, D, float(line_delay)
         if changed:
             self.reset()  # the backends hold the camera: a new camera starts a new trajectory
 
-    def _same_camera(self, K: np.ndarray, D: np.ndarray | None, line_delay: float) -> bool:
-        if (D is None) != (self.D is None) or (D is not None and not np.array_equal(D, self.D)):
-            return False
-        return np.array_equal(K, self.K) and line_delay == self.line_delay
+    def _same_camera(self, K: np.ndarray, D: LensModel | None, line_delay: float) -> bool:
+        return D == self.D and np.array_equal(K, self.K) and line_delay == self.line_delay
 
     def reset(self) -> None:
         """Forget everything: the next frame starts a new trajectory at the identity."""

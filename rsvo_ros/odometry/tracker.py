@@ -1,5 +1,5 @@
 """Feature tracking for the frame-pair pipeline: bucketed corners, pyramidal KLT with a
-forward-backward check, re-detection where tracks thin out, undistortion with K/D.
+forward-backward check, re-detection where tracks thin out.
 
 Pure numpy + OpenCV, no ROS.
 """
@@ -24,15 +24,6 @@ class TrackerOptions:
     pyramid_levels: int = 3
     fb_threshold_px: float = 1.0  # forward-backward consistency
     redetect_fraction: float = 0.8  # top up when fewer than this share of max_features remain
-
-
-def undistort_points(pts: np.ndarray, K: np.ndarray, D: np.ndarray | None) -> np.ndarray:
-    """Pixels (N, 2) of a plumb_bob camera to undistorted pixels of the same K."""
-    if D is None or len(D) == 0 or not np.any(D):
-        return np.asarray(pts, float)
-    out = cv2.undistortPoints(np.asarray(pts, np.float64).reshape(-1, 1, 2), K,
-                              np.asarray(D, np.float64), P=K)  # fmt: skip
-    return out.reshape(-1, 2)
 
 
 @dataclass

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from rsvo_ros.core.lens import LensModel
 from rsvo_ros.ros.convert import pose_components
 
 IMAGE_TOPIC = "/camera/image_raw"
@@ -62,15 +63,17 @@ def image_msg(stamp_ns: int, image: np.ndarray, frame_id: str = CAMERA_FRAME):
 
 
 def camera_info_msg(stamp_ns: int, K: np.ndarray, width: int, height: int,
-                    D: np.ndarray | None = None, frame_id: str = CAMERA_FRAME):
-    """sensor_msgs/CameraInfo with ``K``, ``plumb_bob`` ``D`` (zeros if None), ``P = [K|0]``."""
-    D = np.zeros(5) if D is None else np.asarray(D, float)
+                    lens: LensModel | None = None, frame_id: str = CAMERA_FRAME):
+    """sensor_msgs/CameraInfo with ``K``, the lens's model and coefficients (None: plumb_bob
+    zeros), ``P = [K|0]``."""
+    model = "plumb_bob" if lens is None else lens.model
+    D = np.zeros(5) if lens is None else np.asarray(lens.coeffs, float)
     P = np.hstack([K, np.zeros((3, 1))])
     roi = _t("sensor_msgs/msg/RegionOfInterest")(x_offset=0, y_offset=0, height=0, width=0,
                                                  do_rectify=False)  # fmt: skip
     return _t(CAMERA_INFO_TYPE)(
         header=header(stamp_ns, frame_id), height=height, width=width,
-        distortion_model="plumb_bob", d=D, k=np.asarray(K, float).reshape(-1),
+        distortion_model=model, d=D, k=np.asarray(K, float).reshape(-1),
         r=np.eye(3).reshape(-1), p=P.reshape(-1), binning_x=0, binning_y=0, roi=roi,
     )  # fmt: skip
 

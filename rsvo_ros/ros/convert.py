@@ -14,8 +14,10 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from rsvo_ros.core.lens import LensModel
+
 SUPPORTED_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8")
-SUPPORTED_DISTORTION_MODELS = ("plumb_bob", "", "none")
+
 COVARIANCE_UNKNOWN = 1e6  # what a non-finite covariance entry is published as
 
 
@@ -60,11 +62,11 @@ def stamp_ns(header) -> int:
 
 @dataclass
 class CameraIntrinsics:
-    """What the pipeline needs of a sensor_msgs/CameraInfo: ``K`` (3, 3), ``D`` (plumb_bob
-    coefficients, None when there is no distortion) and the image size (0 when unset)."""
+    """What the pipeline needs of a sensor_msgs/CameraInfo: ``K`` (3, 3), the lens (None when
+    the image is not distorted) and the image size (0 when unset)."""
 
     K: np.ndarray
-    D: np.ndarray | None
+    lens: LensModel | None
     width: int
     height: int
 
@@ -72,17 +74,16 @@ class CameraIntrinsics:
 def camera_from_info(msg) -> CameraIntrinsics:
     """:class:`CameraIntrinsics` of a sensor_msgs/CameraInfo (rclpy or rosbags).
 
-    Raises ValueError for a non-finite or non-positive focal length and for a distortion model
-    other than ``plumb_bob`` (or none) with non-zero coefficients.
+    Raises ValueError for a non-finite or non-positive focal length, and for a distortion
+    model other than ``plumb_bob``, ``rational_polynomial`` or ``equidistant`` (or none) or
+    the wrong number of coefficients for it.
     """
     K = np.asarray(msg.k, float).reshape(3, 3)
-    D = np.asarray(msg.d, float)
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError("camera info with an invalid K (non-finite or non-positive focal "
                          "length)")
-    if msg.distortion_model not in SUPPORTED_DISTORTION_MODELS and np.any(D):
-        raise ValueError(f"unsupported distortion model {msg.distortion_model!r}")
-    return CameraIntrinsics(K, D if np.any(D) else None, int(msg.width), int(msg.height))
+    lens = LensModel.create(str(msg.distortion_model), np.asarray(msg.d, float))
+    return CameraIntrinsics(K, lens, int(msg.width), int(msg.height))
 
 
 def pose_components(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -118,7 +118,7 @@ class RsvoNode(Node):
         except ValueError as exc:
             self._bad(str(exc))
             return
-        self._camera = (cam.K, cam.D, cam.width, cam.height)
+        self._camera = (cam.K, cam.lens, cam.width, cam.height)
         if self.pipeline is None:  # build it now, not on the first image (keeps that one fast)
             with self._lock:
                 self._ensure_pipeline()

@@ -30,9 +30,18 @@ import cv2
 import numpy as np
 
 from rsvo_ros.core.geometry import project_rs_rows, so3_exp, so3_log
+from rsvo_ros.core.lens import LensModel
 from rsvo_ros.sim import paper_scene
 
 MOTIONS = ("paper", "handheld", "vehicle", "walk")
+# lenses a synthetic bag can be rendered through (CameraInfo models; a wide-angle look: the
+# corners of a 640x360 image move by 20-50 px)
+LENSES = {
+    "plumb_bob": LensModel("plumb_bob", (-0.25, 0.07, 0.0005, -0.0004, -0.008)),
+    "rational_polynomial": LensModel("rational_polynomial",
+                                     (0.25, -0.02, 0.0005, -0.0004, 0.0, 0.5, 0.02, 0.0)),
+    "equidistant": LensModel("equidistant", (0.02, -0.01, 0.003, -0.001)),
+}
 FRAME_RATE_HZ = {"paper": paper_scene.FRAME_RATE_HZ, "handheld": 30.0, "vehicle": 30.0,
                  "walk": 30.0}
 SPEED_M_S = {"handheld": 1.4, "vehicle": 8.0}
@@ -114,17 +123,20 @@ class CorridorScene:
         return a + sign * self.half_width, b + sign * self.half_width
 
     def render(self, R_rows: np.ndarray, p_rows: np.ndarray, K: np.ndarray, width: int,
-               height: int) -> np.ndarray:
+               height: int, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """uint8 (height, width) image; row ``r`` seen from ``(R_rows[r], p_rows[r])``
-        (``T_world_camera`` of that row)."""
+        (``T_world_camera`` of that row). ``rays``: each pixel's normalized ``(x, y)`` (a lens:
+        :func:`pixel_rays`); None: the pinhole ``K``."""
         f32 = np.float32
-        Kinv = np.linalg.inv(K)
-        a = (Kinv[0, 0] * np.arange(width) + Kinv[0, 2]).astype(f32)[None, :]  # x of a column
-        b = Kinv[1, 1] * np.arange(height) + Kinv[1, 2]  # y of a row
-        # world ray of pixel (r, c): R_r (a_c, b_r, 1) = a_c R_r[:, 0] + b_r R_r[:, 1] + R_r[:, 2]
-        X = R_rows[:, :, 0].astype(f32)
-        W = (b[:, None] * R_rows[:, :, 1] + R_rows[:, :, 2]).astype(f32)
-        d = [a * X[:, i:i + 1] + W[:, i:i + 1] for i in range(3)]  # (H, W) each
+        if rays is None:
+            Kinv = np.linalg.inv(K)
+            a = (Kinv[0, 0] * np.arange(width) + Kinv[0, 2])[None, :]  # x of a column
+            b = (Kinv[1, 1] * np.arange(height) + Kinv[1, 2])[:, None]  # y of a row
+        else:
+            a, b = rays
+        # world ray of pixel (r, c): R_r (x, y, 1) = x R_r[:, 0] + y R_r[:, 1] + R_r[:, 2]
+        d = [(a * R_rows[:, i, 0][:, None] + b * R_rows[:, i, 1][:, None]
+              + R_rows[:, i, 2][:, None]).astype(f32) for i in range(3)]  # (H, W) each
         o = [p_rows[:, i:i + 1].astype(f32) for i in range(3)]  # (H, 1) each
         best = np.full((height, width), np.inf, f32)
         surf = np.full((height, width), -1, np.int8)
@@ -369,8 +381,11 @@ class SynthConfig:
     height: int = 360
     line_delay: float | None = None
     seed: int = 0
+    lens: str = "none"  # "none" or a key of LENSES: the images are rendered through that lens
 
     def __post_init__(self):
+        if self.lens != "none" and self.lens not in LENSES:
+            raise ValueError(f"lens must be none or one of {sorted(LENSES)}, got {self.lens!r}")
         if self.motion not in MOTIONS:
             raise ValueError(f"motion must be one of {MOTIONS}, got {self.motion!r}")
         if self.level not in paper_scene.RS_LEVELS:
@@ -391,6 +406,20 @@ class SynthConfig:
     @property
     def rate_hz(self) -> float:
         return FRAME_RATE_HZ[self.motion]
+
+    @property
+    def lens_model(self) -> LensModel | None:
+        return None if self.lens == "none" else LENSES[self.lens]
+
+
+def pixel_rays(lens: LensModel, K: np.ndarray, width: int,
+               height: int) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Normalized ``(x, y)`` (each (height, width)) of every raw pixel seen through ``lens``."""
+    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    und = lens.undistort(np.column_stack([u.ravel(), v.ravel()]), K)
+    x = (und[:, 0] - K[0, 2]) / K[0, 0]
+    y = (und[:, 1] - K[1, 2]) / K[1, 1]
+    return x.reshape(height, width), y.reshape(height, width)
 
 
 @dataclass
@@ -414,6 +443,9 @@ class SequenceRenderer:
         self.config = config
         self.K = intrinsics(config.width, config.height)
         self.scene = scene or CorridorScene.create(config.seed)
+        lens = config.lens_model
+        self._rays = None if lens is None else pixel_rays(lens, self.K, config.width,
+                                                          config.height)  # fmt: skip
         rng = np.random.default_rng([config.seed, 11])
         if config.motion == "paper":
             n_loop = max(config.frames, paper_scene.NUM_FRAMES)  # the paper's spacing, 250/loop
@@ -456,7 +488,7 @@ class SequenceRenderer:
         cfg = self.config
         stamp, R0, p0, w, v, row_pose = self.frame_pose(k)
         R_rows, p_rows = row_pose(np.arange(cfg.height))
-        img = self.scene.render(R_rows, p_rows, self.K, cfg.width, cfg.height)
+        img = self.scene.render(R_rows, p_rows, self.K, cfg.width, cfg.height, self._rays)
         return Frame(k, stamp, img, R0, p0, w, v, row_pose)
 
     def __iter__(self) -> Iterator[Frame]:

@@ -199,9 +199,9 @@ def replay(cfg: ReplayConfig) -> dict:
                     skipped["image size differs from camera info"] += 1
                     continue
                 if pipeline is None:
-                    pipeline = OdometryPipeline(camera.K, camera.D, line_delay, options)
+                    pipeline = OdometryPipeline(camera.K, camera.lens, line_delay, options)
                 else:
-                    pipeline.set_camera(camera.K, camera.D, line_delay)
+                    pipeline.set_camera(camera.K, camera.lens, line_delay)
                 res = pipeline.process(stamp, gray)
                 if res.status == "skipped":
                     skipped[res.reason.split(" (")[0]] += 1

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from rsvo_ros.ros import bagio
-from rsvo_ros.sim.synth import MOTIONS, SequenceRenderer, SynthConfig
+from rsvo_ros.sim.synth import LENSES, MOTIONS, SequenceRenderer, SynthConfig
 
 EXIT_USAGE = 2
 
@@ -45,6 +45,7 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
         writer.set_custom_data("rsvo.level", str(config.level))
         writer.set_custom_data("rsvo.severity", format(float(config.severity), ".12g"))
         writer.set_custom_data("rsvo.seed", str(config.seed))
+        writer.set_custom_data("rsvo.lens", config.lens)
         c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
         c_info = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE,
                                        typestore=ts)  # fmt: skip
@@ -53,7 +54,8 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
             stamp_ns = round(frame.stamp * 1e9)
             writer.write(c_img, stamp_ns, bagio.serialize(bagio.image_msg(stamp_ns, frame.image)))
             writer.write(c_info, stamp_ns, bagio.serialize(
-                bagio.camera_info_msg(stamp_ns, K, config.width, config.height)))
+                bagio.camera_info_msg(stamp_ns, K, config.width, config.height,
+                                      config.lens_model)))
             writer.write(c_gt, stamp_ns, bagio.serialize(bagio.odometry_msg(
                 stamp_ns, frame.R_world_cam, frame.p_world_cam, bagio.WORLD_FRAME,
                 bagio.CAMERA_FRAME, linear=frame.v, angular=frame.w)))  # fmt: skip
@@ -94,6 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image size (default 640x360)")
     p.add_argument("--line-delay", type=float, default=None, metavar="S",
                    help="seconds per row (default: a 36 ms readout, the paper's 720 x 50 us)")
+    p.add_argument("--lens", choices=("none", *sorted(LENSES)), default="none",
+                   help="render through a wide-angle lens of this CameraInfo distortion model "
+                        "(written into the camera info; default none)")
     p.add_argument("--storage", choices=bagio.STORAGES, default="sqlite3",
                    help="rosbag2 storage (default sqlite3)")
     p.add_argument("--seed", type=int, default=0, help="scene and motion seed (default 0)")
@@ -108,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         config = SynthConfig(frames=args.frames, motion=args.motion, level=args.level,
                              severity=args.severity, width=args.resolution[0],
                              height=args.resolution[1], line_delay=args.line_delay,
-                             seed=args.seed)  # fmt: skip
+                             seed=args.seed, lens=args.lens)  # fmt: skip
         summary = write_bag(args.out_bag, config, args.storage, args.overwrite,
                             progress=not args.no_progress)
     except (ValueError, FileExistsError) as exc:

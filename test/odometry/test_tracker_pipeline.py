@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from rsvo_ros.core.geometry import rotation_angle_deg
+from rsvo_ros.core.lens import undistort_points
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
-from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions, undistort_points
+from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig, render_sequence
 
 

@@ -47,15 +47,24 @@ def _info(k, d=(), model="plumb_bob", width=320, height=180):
 def test_camera_from_info_reads_k_d_and_size():
     K = np.array([[400.0, 0, 160], [0, 410.0, 90], [0, 0, 1]])
     cam = camera_from_info(_info(K.ravel(), [0.1, 0, 0, 0, 0]))
-    assert np.array_equal(cam.K, K) and np.allclose(cam.D, [0.1, 0, 0, 0, 0])
+    assert np.array_equal(cam.K, K) and cam.lens.model == "plumb_bob"
+    assert np.allclose(cam.lens.coeffs, [0.1, 0, 0, 0, 0])
     assert (cam.width, cam.height) == (320, 180)
-    assert camera_from_info(_info(K.ravel(), [0.0] * 5)).D is None  # zeros: no distortion
+    assert camera_from_info(_info(K.ravel(), [0.0] * 5)).lens is None  # zeros: no distortion
+    rational = camera_from_info(_info(K.ravel(), [0.1] * 8, "rational_polynomial")).lens
+    assert rational.model == "rational_polynomial" and len(rational.coeffs) == 8
+    # a fisheye with zero coefficients is still a fisheye (r = f theta, not f tan theta)
+    assert camera_from_info(_info(K.ravel(), [0.0] * 4, "equidistant")).lens.model \
+        == "equidistant"
 
 
 @pytest.mark.parametrize("k, d, model, message", [
     ([0.0] * 9, [], "plumb_bob", "invalid K"),
     ([np.nan] + [0.0] * 8, [], "plumb_bob", "invalid K"),
     ([400.0, 0, 160, 0, 400.0, 90, 0, 0, 1], [0.1], "kannala_brandt_9", "unsupported"),
+    ([400.0, 0, 160, 0, 400.0, 90, 0, 0, 1], [0.1] * 5, "equidistant", "takes 4"),
+    ([400.0, 0, 160, 0, 400.0, 90, 0, 0, 1], [0.1] * 5, "rational_polynomial", "takes 8"),
+    ([400.0, 0, 160, 0, 400.0, 90, 0, 0, 1], [np.nan] * 5, "plumb_bob", "non-finite"),
 ])
 def test_camera_from_info_rejects_bad_intrinsics(k, d, model, message):
     with pytest.raises(ValueError, match=message):
