@@ -81,6 +81,14 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return phi.reshape(R.shape[:-1])
 
 
+def pose_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a (4, 4) rigid transform."""
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     """Angle of (..., 3, 3) rotations in degrees (the paper's Rodrigues error metric)."""
     cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)

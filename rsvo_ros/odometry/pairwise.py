@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rsvo_ros.core.geometry import pose_at_row, so3_exp, so3_log
+from rsvo_ros.core.geometry import pose_at_row, pose_inverse, so3_exp, so3_log
 from rsvo_ros.core.lens import undistort_points
 from rsvo_ros.odometry.tracker import TrackedPair
 from rsvo_ros.twoview import LMOptions, RansacOptions, RelativePoseResult, estimate_relative_pose
@@ -82,13 +82,6 @@ def _interpolate(T: np.ndarray, a: float) -> np.ndarray:
     out[:3, :3] = so3_exp(a * so3_log(T[:3, :3]))
     out[:3, 3] = a * T[:3, 3]
     return out
-
-
-def _inverse(T: np.ndarray) -> np.ndarray:
-    Ti = np.eye(4)
-    Ti[:3, :3] = T[:3, :3].T
-    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return Ti
 
 
 class PairwiseChain:
@@ -152,13 +145,13 @@ class PairwiseChain:
         scale, scale_note = self._relative_scale(pair.ids, rel, d_prev, unit)
         T_curr_prev = np.eye(4)
         T_curr_prev[:3, :3], T_curr_prev[:3, 3] = R_m, t_m * scale
-        M = _inverse(T_curr_prev)  # the current middle-row camera in the previous one
+        M = pose_inverse(T_curr_prev)  # the current middle-row camera in the previous one
         # row 0 is exposed row_mid * tau before the middle row: where the frames' middle-row
         # cameras were at those times, interpolated along the motion between them
         lead = row_mid * tau / max(interval, 1e-9)
         T_world_mid = self._T_world_mid
         if T_world_mid is None:  # the first pair: place the previous frame's middle row
-            T_world_mid = self.T_world_cam @ _inverse(_interpolate(M, -lead))
+            T_world_mid = self.T_world_cam @ pose_inverse(_interpolate(M, -lead))
         T_mid_new = T_world_mid @ M
         T_new = T_world_mid @ _interpolate(M, 1.0 - lead)
         if not (np.isfinite(T_new).all() and np.isfinite(T_mid_new).all()):

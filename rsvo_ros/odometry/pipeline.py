@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rsvo_ros.core.geometry import pose_inverse
 from rsvo_ros.core.lens import LensModel, as_lens, undistort_points
 from rsvo_ros.odometry.frame import FrameState, Observations
 from rsvo_ros.odometry.pairwise import PairwiseChain
@@ -30,6 +31,7 @@ from rsvo_ros.odometry.window import (
     covariance_from_tracking,
 )
 from rsvo_ros.twoview import LMOptions, RansacOptions, RelativePoseResult
+from rsvo_ros.twoview.estimator import warm_up as warm_up_two_view
 
 BACKENDS = ("window", "pairwise")
 
@@ -54,6 +56,15 @@ class PipelineOptions:
     motion_prior: bool = True
     max_scale_change: float = 5.0  # pairwise: relative scale outside [1/x, x] is not trusted
     seed: int = 0
+    # Time that jumps. Back by more than this many frame intervals (a looped bag, a restarted
+    # simulator): the odometry resets and a new trajectory starts at that frame; back by less
+    # (a late frame): the frame is skipped.
+    reset_back_frames: float = 2.0
+    # Ahead by more than this many frame intervals (and at least ahead_min_s): a stamp off the
+    # stream's cadence (a corrupt header) is one bad frame, skipped, the clock kept; when the
+    # next frame follows the new time at the cadence, the stream did jump: it goes on from there.
+    ahead_frames: float = 20.0
+    ahead_min_s: float = 1.0
 
 
 @dataclass
@@ -76,7 +87,10 @@ class FrameResult:
     pts_curr: np.ndarray | None = None
     inliers: np.ndarray | None = None  # (n,) of pts_curr: used by the estimate (for drawing)
     keyframe: bool = False  # window: this frame became a keyframe
+    # "initialising" (no motion estimate yet), "tracking" or "lost" (the pose is held)
+    tracking: str = "tracking"
     velocity: tuple[np.ndarray, np.ndarray] | None = None  # window: (w, v) in the row-0 frame
+    time_reset: bool = False  # time jumped back: this frame starts a new trajectory
 
     @property
     def has_pose(self) -> bool:
@@ -121,6 +135,8 @@ class OdometryPipeline:
         self.T_world_cam = np.eye(4)
         self.covariance = np.zeros((6, 6))
         self._last_stamp: int | None = None
+        self._intervals: list[int] = []  # the last frame intervals (ns): the stream's cadence
+        self._ahead_stamp: int | None = None  # a skipped far-ahead stamp
         self._index = 0
         self._started = False
         tau = self.line_delay if o.model == "rs" else 0.0
@@ -130,6 +146,10 @@ class OdometryPipeline:
         self.window = WindowOdometry(self.K, tau, o.window, o.model, o.ransac, o.lm,
                                      o.initial_scale, o.motion_prior, o.seed)  # fmt: skip
         self._window_was_initialising = True
+        # T_odom_world: the published odometry is this times the window's estimate; each window
+        # BA that moves the current frame updates it, so that the published pose stays
+        # continuous while the map (and the keyframe path) take the correction (REP 105's odom)
+        self.T_odom_world = np.eye(4)
 
     def process(self, stamp_ns: int, gray: np.ndarray) -> FrameResult:
         """One new frame (uint8 gray). Never raises for bad data: returns a skipped result."""
@@ -141,15 +161,26 @@ class OdometryPipeline:
             res = FrameResult(idx, stamp_ns, status, reason,
                               None if status == "skipped" else self.T_world_cam.copy(),
                               self.covariance.copy(), **kw)  # fmt: skip
+            res.tracking = self._tracking_state(status, reason)
             res.time_ms = (time.perf_counter() - t0) * 1e3
             return res
 
         if gray is None or gray.ndim != 2 or gray.dtype != np.uint8 or gray.size == 0:
             return result("skipped", "not a non-empty uint8 gray image")
-        if self._last_stamp is not None and stamp_ns <= self._last_stamp:
-            kind = "duplicate" if stamp_ns == self._last_stamp else "backwards"
-            return result("skipped", f"{kind} stamp ({stamp_ns} after {self._last_stamp} ns)")
+        jump = self._time_jump(stamp_ns)
+        if jump == "reset":
+            back = (self._last_stamp - stamp_ns) * 1e-9
+            self.reset()  # as a new pipeline: frame indices (and RANSAC seeds) start over
+            res = self.process(stamp_ns, gray)
+            res.time_reset = True
+            res.reason = f"time jumped back {back:.3f} s: odometry reset, a new trajectory " \
+                         f"starts here ({res.reason})"
+            return res
+        if jump:
+            return result("skipped", jump)
         prev_stamp, self._last_stamp = self._last_stamp, stamp_ns
+        if prev_stamp is not None:
+            self._intervals = (self._intervals + [stamp_ns - prev_stamp])[-15:]
         pair = self.tracker.track(gray)
         if self.options.backend == "window":
             interval = None if prev_stamp is None else (stamp_ns - prev_stamp) * 1e-9
@@ -171,6 +202,56 @@ class OdometryPipeline:
                       inlier_ratio=step.inlier_ratio, scale=step.scale, relative=rel,
                       pts_prev=pair.pts_prev, pts_curr=pair.pts_curr,
                       inliers=None if rel is None else rel.inliers)  # fmt: skip
+
+    @property
+    def frame_interval_ns(self) -> float | None:
+        """The stream's cadence (median of the last intervals), None before two frames."""
+        return float(np.median(self._intervals)) if self._intervals else None
+
+    def _time_jump(self, stamp_ns: int) -> str | None:
+        """None: an ordinary next stamp; "reset": time went back a lot; else why the frame is
+        skipped (a duplicate, a late frame, a stamp far ahead of the cadence)."""
+        last = self._last_stamp
+        if last is None:
+            return None
+        o = self.options
+        interval = self.frame_interval_ns
+        if stamp_ns == last:
+            return f"duplicate stamp ({stamp_ns} ns)"
+        if stamp_ns < last:
+            if interval is None or last - stamp_ns > o.reset_back_frames * interval:
+                return "reset"
+            return f"backwards stamp ({stamp_ns} after {last} ns)"
+        ahead = max(o.ahead_frames * (interval or 0.0), o.ahead_min_s * 1e9)
+        if stamp_ns - last <= ahead:
+            self._ahead_stamp = None
+            return None
+        pending, self._ahead_stamp = self._ahead_stamp, stamp_ns
+        if pending is not None and 0 < stamp_ns - pending <= max(3 * (interval or 0), 0.5e9):
+            self._ahead_stamp = None  # two frames agree: the stream jumped (or paused)
+            return None
+        return (f"stamp far ahead of the stream ({(stamp_ns - last) * 1e-9:.3f} s after the "
+                f"last frame; the clock is kept)")
+
+    def _tracking_state(self, status: str, reason: str) -> str:
+        if status == "first" or reason.startswith("initialising"):
+            return "initialising"
+        return "lost" if status == "held" else "tracking"
+
+    def map_points(self) -> np.ndarray:
+        """(M, 3) points of the local map in the odometry frame (window backend; the pairwise
+        chain keeps no map: empty)."""
+        if self.options.backend != "window":
+            return np.zeros((0, 3))
+        X = self.window.map_points()
+        return X @ self.T_odom_world[:3, :3].T + self.T_odom_world[:3, 3]
+
+    def keyframe_poses(self) -> list[tuple[int, np.ndarray]]:
+        """``(stamp_ns, T_odom_camera)`` of the keyframes as the window last refined them, in
+        the odometry frame (window backend; pairwise: empty)."""
+        if self.options.backend != "window":
+            return []
+        return [(stamp, self.T_odom_world @ T) for stamp, T in self.window.keyframe_poses()]
 
     def observations(self) -> Observations:
         """Every feature of the last image as the window backend takes them."""
@@ -198,10 +279,19 @@ class OdometryPipeline:
                           inlier_ratio=step.inlier_ratio, relative=step.relative,
                           pts_prev=pair.pts_prev, pts_curr=pair.pts_curr,
                           inliers=step.relative.inliers)  # fmt: skip
+        if bootstrap and not self.window.initialising:
+            self.T_odom_world = np.eye(4)  # the new map starts in the chain's (published) frame
         if state is not None and out.status == "posed":
-            self.T_world_cam = self.window.row0_pose(state)  # held frames keep the last pose
+            if out.state_before_ba is not None:  # the BA moved this frame: keep odom continuous
+                T_before = self.window.row0_pose(out.state_before_ba)
+                T_after = self.window.row0_pose(state)
+                self.T_odom_world = self.T_odom_world @ T_before @ pose_inverse(T_after)
+            # held frames keep the last pose
+            self.T_world_cam = self.T_odom_world @ self.window.row0_pose(state)
         if out.status == "posed":
-            self.covariance = covariance_from_tracking(out)
+            R = self.T_odom_world[:3, :3]
+            J = np.kron(np.eye(2), R)
+            self.covariance = J @ covariance_from_tracking(out) @ J.T
         else:
             self.covariance = self.covariance + np.diag([1e-2] * 3 + [1e-3] * 3)
         if self.window.initialising and not self._window_was_initialising:
@@ -221,3 +311,24 @@ class OdometryPipeline:
                       inlier_ratio=out.inliers / max(out.tracked, 1),
                       pts_prev=pair.pts_prev, pts_curr=pair.pts_curr,
                       keyframe=out.keyframe, velocity=velocity)  # fmt: skip
+
+
+def warm_up() -> float:
+    """Compile (first run after an install) or load from numba's cache every kernel the
+    pipeline runs: the two-view estimator's, then the window backend's (tracking, window BA,
+    landmarks), by running the window odometry over a small synthetic scene. Returns seconds.
+    A live node calls it before subscribing, so that no frame waits for a compiler."""
+    t0 = time.perf_counter()
+    warm_up_two_view()
+    rng = np.random.default_rng(0)
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    X = np.column_stack([rng.uniform(-4, 4, (150, 2)), rng.uniform(4, 12, 150)])
+    ids = np.arange(len(X))
+    odometry = WindowOdometry(K, 2e-5, WindowOptions(pairwise_bootstrap=False))
+    for k in range(16):  # 0.1 m per frame to the side: the map starts, frames are tracked
+        x = X - np.array([0.1 * k, 0.0, 0.0])
+        xn = x[:, :2] / x[:, 2:]
+        px = xn * 500.0 + K[:2, 2]
+        odometry.track(int(k * 33_333_333), Observations(ids, xn, odometry.row_time(px[:, 1]),
+                                                         px, px[:, 1]))  # fmt: skip
+    return time.perf_counter() - t0

@@ -95,6 +95,9 @@ class WindowResult:
     hessian: np.ndarray | None = None  # (12, 12) of tracking, px^-2 units
     sigma2: float = 1.0  # residual variance of tracking (px^2)
     ba: BAReport | None = None
+    # where the frame was before this frame's window BA moved it (keyframes): the pipeline keeps
+    # its published odometry continuous across the correction
+    state_before_ba: FrameState | None = None
 
 
 class WindowOdometry:
@@ -271,6 +274,7 @@ class WindowOdometry:
         ref.state.w, ref.state.v = vel_ref
         ref.velocity_prior = vel_ref
         kf = self._new_keyframe(state, obs, vel_cur)
+        before = state.copy()
         with self._lock:
             self.map.add_keyframe(ref)
             self.map.add_keyframe(kf)
@@ -286,9 +290,11 @@ class WindowOdometry:
         self._hints.clear()
         self._before, self._last = ref.state.copy(), kf.state.copy()
         self._tracked_at_kf = len(self.map.landmarks)
+        if not hinted:
+            before = None  # the world itself moved (rebased): nothing was published in it yet
         return WindowResult("posed", "initialised the map", self._last.copy(),
                             inliers=res.num_inliers, tracked=len(self.map.landmarks),
-                            keyframe=True, ba=report)  # fmt: skip
+                            keyframe=True, ba=report, state_before_ba=before)  # fmt: skip
 
     def _rebase_to_row0_of(self, kf: KeyFrame) -> None:
         """Move the world so that the first keyframe's row-0 camera is the origin."""
@@ -332,6 +338,7 @@ class WindowOdometry:
             kf.before = self._last.copy()
             kf.rejected.update(int(t) for t in obs.ids[ib][~inl])
             result.keyframe = True
+            result.state_before_ba = state.copy()
             result.ba = self.map_keyframe(kf)
             refined = kf.state if kf in self.map.keyframes else state
             state = refined.copy()
@@ -364,13 +371,15 @@ class WindowOdometry:
                     state, _, vel_cur = self._states_from_pair(res, last_kf.state, stamp_ns,
                                                                scale)
                     kf = self._new_keyframe(state, obs, vel_cur)
+                    before = state.copy()
                     report = self.map_keyframe(kf)
                     state = kf.state.copy() if kf in self.map.keyframes else state
                     self._before, self._last = self._last, state.copy()
                     self._lost = 0
                     self._tracked_at_kf = len(self.map.landmarks)
                     return WindowResult("posed", "recovered with the pair estimator", state,
-                                        inliers=res.num_inliers, keyframe=True, ba=report)
+                                        inliers=res.num_inliers, keyframe=True, ba=report,
+                                        state_before_ba=before)  # fmt: skip
         self._lost += 1
         held = self._last.copy()
         if self._lost >= self.options.lost_frames_to_reset:
@@ -418,6 +427,17 @@ class WindowOdometry:
             for k in self.map.keyframes:
                 self.keyframe_log[k.state.stamp_ns] = k.state.copy()
         return report
+
+    def map_points(self) -> np.ndarray:
+        """(M, 3) world points of the local map's landmarks (what tracking matches)."""
+        with self._lock:
+            return self._points[1].copy()
+
+    def keyframe_poses(self) -> list[tuple[int, np.ndarray]]:
+        """``(stamp_ns, row-0 T_world_camera)`` of every keyframe so far, as last refined."""
+        with self._lock:
+            log = sorted(self.keyframe_log.items())
+        return [(stamp, self.row0_pose(state)) for stamp, state in log]
 
     def row0_pose(self, state: FrameState) -> np.ndarray:
         """(4, 4) ``T_world_camera`` of a frame's row 0 (what the pipeline reports)."""

@@ -88,8 +88,8 @@ def camera_from_info(msg) -> CameraIntrinsics:
 
 def pose_components(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Position (3,) and unit quaternion ``quat_xyzw`` (4,) of a (4, 4) ``T`` (geometry_msgs
-    order)."""
-    return np.asarray(T[:3, 3], float), Rotation.from_matrix(T[:3, :3]).as_quat()
+    order, w >= 0)."""
+    return np.asarray(T[:3, 3], float), Rotation.from_matrix(T[:3, :3]).as_quat(canonical=True)
 
 
 def fill_pose(pose, T: np.ndarray) -> None:
@@ -104,3 +104,26 @@ def covariance_for_msg(cov: np.ndarray) -> np.ndarray:
     """(36,) float covariance for a message: non-finite entries become ``COVARIANCE_UNKNOWN``."""
     cov = np.asarray(cov, float)
     return np.where(np.isfinite(cov), cov, COVARIANCE_UNKNOWN).ravel()
+
+
+def fill_transform(transform, T: np.ndarray) -> None:
+    """Write ``T`` into a geometry_msgs/Transform (translation, rotation)."""
+    p, q = pose_components(T)
+    transform.translation.x, transform.translation.y, transform.translation.z = (float(v)
+                                                                                 for v in p)
+    transform.rotation.x, transform.rotation.y = float(q[0]), float(q[1])
+    transform.rotation.z, transform.rotation.w = float(q[2]), float(q[3])
+
+
+POINT_FIELD_FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
+XYZ_FIELDS = (("x", 0), ("y", 4), ("z", 8))  # (name, offset), FLOAT32, count 1
+XYZ_POINT_STEP = 12
+
+
+def xyz_cloud_data(points: np.ndarray) -> bytes:
+    """Little-endian float32 x, y, z of (N, 3) points: a dense sensor_msgs/PointCloud2 payload
+    (``XYZ_FIELDS``, point_step ``XYZ_POINT_STEP``, height 1, width N); non-finite points are
+    left out."""
+    pts = np.asarray(points, float).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    return pts.astype("<f4").tobytes()

@@ -18,28 +18,42 @@ import cv2
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_srvs.srv import Trigger
 
-from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions
+from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions, warm_up
 from rsvo_ros.odometry.tracker import TrackerOptions
 from rsvo_ros.ros.convert import (
+    COVARIANCE_UNKNOWN,
+    POINT_FIELD_FLOAT32,
+    XYZ_FIELDS,
+    XYZ_POINT_STEP,
     camera_from_info,
     covariance_for_msg,
     fill_pose,
+    fill_transform,
     image_to_gray,
     stamp_ns,
+    xyz_cloud_data,
 )
 from rsvo_ros.ros.params import PARAMETERS, help_text, read_config
-from rsvo_ros.twoview.estimator import warm_up
+
+try:  # not on PyPI: a ROS install provides it, else launch_scripts/setup.sh builds it
+    from tf2_msgs.msg import TFMessage
+except ImportError:  # pragma: no cover - depends on the install
+    TFMessage = None
 
 QOS_WAIT_S = 10.0  # auto QoS: wait this long for a publisher, then subscribe best effort
+# what tf2_ros's broadcasters use: /tf keeps 100, /tf_static is latched for late subscribers
+TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class RsvoNode(Node):
@@ -53,7 +67,7 @@ class RsvoNode(Node):
         self.T_base_cam = self.p.T_base_cam
         # before anything is advertised: the first run after an install compiles the solver
         self.get_logger().info("loading the solver kernels (the first run after an install "
-                               "compiles them: about half a minute)")
+                               "compiles them: about a minute)")
         self.get_logger().info(f"solver ready in {warm_up():.1f} s")
         self._lock = threading.Lock()
         self._pending: tuple | None = None
@@ -69,6 +83,7 @@ class RsvoNode(Node):
         self._proc_ms: deque = deque(maxlen=100)
         self._last_inlier_ratio = 0.0
         self._state = "waiting for camera info"
+        self._tracking = "initialising"
         self._path: deque = deque(maxlen=int(self.p["path_max_length"]))
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, self.p["odom_topic"], reliable)
@@ -76,6 +91,20 @@ class RsvoNode(Node):
         self.pub_debug = self.create_publisher(Image, self.p["debug_image_topic"],
                                                qos_profile_sensor_data)  # fmt: skip
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.pub_map = self.create_publisher(PointCloud2, self.p["map_points_topic"], reliable)
+        self.pub_keyframes = self.create_publisher(Path, self.p["keyframe_path_topic"], reliable)
+        self._last_map_publish = -np.inf
+        self.pub_tf = self.pub_tf_static = None
+        if self.p["publish_tf"]:
+            if TFMessage is None:
+                self.get_logger().error("tf2_msgs is not installed: /tf is not published (run "
+                                        "launch_scripts/setup.sh, which builds it)")
+            else:
+                self.pub_tf = self.create_publisher(TFMessage, "/tf", TF_QOS)
+                if self.p["base_frame"]:
+                    self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static",
+                                                               TF_STATIC_QOS)  # fmt: skip
+                    self._publish_static_tf()
         self.create_service(Trigger, "/rsvo/reset", self._on_reset)
         self.sub_info = self.create_subscription(CameraInfo, self.p["camera_info_topic"],
                                                  self._on_info, qos_profile_sensor_data)
@@ -210,24 +239,47 @@ class RsvoNode(Node):
             return
         if res.status == "held":
             self.stats["held"] += 1
-        self._state = {"first": "initialised", "posed": "tracking",
-                       "held": f"holding: {res.reason}"}[res.status]  # fmt: skip
+        self._state = {"initialising": f"initialising: {res.reason}", "tracking": "tracking",
+                       "lost": f"lost: {res.reason}"}[res.tracking]  # fmt: skip
+        self._tracking = res.tracking
         self._last_inlier_ratio = res.inlier_ratio
         self._publish(msg, res, gray)
 
+    def _publish_static_tf(self) -> None:
+        tf = TransformStamped()
+        tf.header.stamp = self.get_clock().now().to_msg()
+        tf.header.frame_id = self.p["base_frame"]
+        tf.child_frame_id = self.p["camera_frame"]
+        fill_transform(tf.transform, self.T_base_cam)
+        self.pub_tf_static.publish(TFMessage(transforms=[tf]))
+
+    def _to_odom(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """The published pose: the camera's, or the base's through ``base_to_camera`` (the odom
+        frame is where the base starts)."""
+        if not self.p["base_frame"]:
+            return T_world_cam
+        return self.T_base_cam @ T_world_cam @ np.linalg.inv(self.T_base_cam)
+
     def _publish(self, msg: Image, res: FrameResult, gray: np.ndarray) -> None:
-        T = res.T_world_cam
-        child = self.p["camera_frame"]
-        if self.p["base_frame"]:
-            T = self.T_base_cam @ T @ np.linalg.inv(self.T_base_cam)
-            child = self.p["base_frame"]
+        lost = res.tracking == "lost"
+        if lost and self.p["lost_odometry"] == "none":
+            return
+        T = self._to_odom(res.T_world_cam)
+        child = self.p["base_frame"] or self.p["camera_frame"]
         odom = Odometry()
         odom.header.stamp = msg.header.stamp
         odom.header.frame_id = self.p["odom_frame"]
         odom.child_frame_id = child
         fill_pose(odom.pose.pose, T)
-        odom.pose.covariance = [float(x) for x in covariance_for_msg(res.covariance)]
+        cov = np.eye(6) * COVARIANCE_UNKNOWN if lost else res.covariance
+        odom.pose.covariance = [float(x) for x in covariance_for_msg(cov)]
         self.pub_odom.publish(odom)
+        if self.pub_tf is not None:
+            tf = TransformStamped()
+            tf.header = odom.header
+            tf.child_frame_id = child
+            fill_transform(tf.transform, T)
+            self.pub_tf.publish(TFMessage(transforms=[tf]))
         ps = PoseStamped()
         ps.header = odom.header
         ps.pose = odom.pose.pose
@@ -238,6 +290,38 @@ class RsvoNode(Node):
         self.pub_path.publish(path)
         if self.p["publish_debug_image"] and self.pub_debug.get_subscription_count() > 0:
             self.pub_debug.publish(_debug_image(msg, gray, res))
+        now = time.monotonic()
+        if now - self._last_map_publish >= float(self.p["map_publish_period_s"]):
+            self._last_map_publish = now
+            self._publish_map(odom.header)
+
+    def _publish_map(self, header) -> None:
+        """The local map's points and the corrected keyframe path (window backend)."""
+        pipeline = self.pipeline
+        X = pipeline.map_points()
+        if self.p["base_frame"]:
+            X = X @ self.T_base_cam[:3, :3].T + self.T_base_cam[:3, 3]
+        cloud = PointCloud2()
+        cloud.header = header
+        data = xyz_cloud_data(X)
+        cloud.height, cloud.width = 1, len(data) // XYZ_POINT_STEP
+        cloud.fields = [PointField(name=n, offset=o, datatype=POINT_FIELD_FLOAT32, count=1)
+                        for n, o in XYZ_FIELDS]  # fmt: skip
+        cloud.is_bigendian = False
+        cloud.point_step = XYZ_POINT_STEP
+        cloud.row_step = len(data)
+        cloud.data = data
+        cloud.is_dense = True
+        self.pub_map.publish(cloud)
+        path = Path()
+        path.header = header
+        for stamp, T in pipeline.keyframe_poses()[-int(self.p["path_max_length"]):]:
+            ps = PoseStamped()
+            ps.header.frame_id = header.frame_id
+            ps.header.stamp.sec, ps.header.stamp.nanosec = divmod(int(stamp), 1_000_000_000)
+            fill_pose(ps.pose, self._to_odom(T))
+            path.poses.append(ps)
+        self.pub_keyframes.publish(path)
 
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
@@ -247,13 +331,15 @@ class RsvoNode(Node):
         st.name = "rsvo_node: odometry"
         st.hardware_id = self.p["camera_frame"]
         bad_recent = self.stats["bad"] > 0
-        st.level = DiagnosticStatus.OK if not bad_recent else DiagnosticStatus.WARN
+        st.level = DiagnosticStatus.OK if not bad_recent and self._tracking != "lost" \
+            else DiagnosticStatus.WARN
         st.message = self._state
         vals = {
             "input_rate_hz": f"{rate:.2f}",
             "processing_time_ms_median": f"{np.median(self._proc_ms):.1f}" if self._proc_ms
             else "n/a",
             "inlier_ratio": f"{self._last_inlier_ratio:.3f}",
+            "tracking_state": self._tracking,
             **{k: str(v) for k, v in self.stats.items()},
             "model": self.p["model"], "line_delay": str(self.p["line_delay"]),
         }  # fmt: skip

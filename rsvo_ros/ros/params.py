@@ -22,6 +22,7 @@ from rsvo_ros.odometry.pipeline import BACKENDS
 from rsvo_ros.twoview.estimator import MODELS
 
 QOS_CHOICES = ("auto", "reliable", "best_effort")
+LOST_CHOICES = ("large_covariance", "none")
 
 
 def _float(desc, lo, hi, step=0.0):
@@ -73,6 +74,19 @@ PARAMETERS = {
                        ParameterDescriptor(description="Fixed T_base_camera as [x, y, z, qx, "
                                            "qy, qz, qw] (m, unit quaternion).",
                                            type=ParameterType.PARAMETER_DOUBLE_ARRAY)),
+    "publish_tf": (True, _bool("Broadcast odom_frame -> base_frame (or camera_frame) on /tf "
+                               "with every odometry message, and base_frame -> camera_frame on "
+                               "/tf_static when base_frame is set.")),
+    "lost_odometry": ("large_covariance", _str(
+        "While tracking is lost: large_covariance publishes the held pose with a covariance of "
+        "1e6 on the diagonal (rtabmap's convention); none publishes no odometry (and no /tf).",
+        LOST_CHOICES)),
+    "map_points_topic": ("/rsvo/map_points", _str("Output sensor_msgs/PointCloud2: the local "
+                                                  "map's landmarks in odom_frame.")),
+    "keyframe_path_topic": ("/rsvo/keyframes", _str("Output nav_msgs/Path: the keyframes as the "
+                                                    "window last corrected them.")),
+    "map_publish_period_s": (1.0, _float("Period of the map points and keyframe path (s); "
+                                         "0 publishes them with every frame.", 0.0, 60.0)),
     "path_max_length": (1000, _int("Poses kept in the published path.", 1, 100000)),
     "image_qos_reliability": ("auto", _str("Image subscription reliability; auto matches the "
                                            "publisher as rosbag2's recorder does.",
@@ -104,11 +118,15 @@ def read_config(values: dict) -> NodeConfig:
     if p["image_qos_reliability"] not in QOS_CHOICES:
         raise ValueError(f"parameter image_qos_reliability must be one of {QOS_CHOICES}, "
                          f"got {p['image_qos_reliability']!r}")  # fmt: skip
+    if p["lost_odometry"] not in LOST_CHOICES:
+        raise ValueError(f"parameter lost_odometry must be one of {LOST_CHOICES}, "
+                         f"got {p['lost_odometry']!r}")  # fmt: skip
     tf = np.asarray(p["base_to_camera"], float)
     if tf.shape != (7,) or not np.isfinite(tf).all() or abs(np.linalg.norm(tf[3:]) - 1) > 1e-3:
         raise ValueError("parameter base_to_camera must be [x, y, z, qx, qy, qz, qw] with a "
                          f"unit quaternion, got {list(tf)}")  # fmt: skip
-    for topic in ("image_topic", "camera_info_topic", "odom_topic", "path_topic"):
+    for topic in ("image_topic", "camera_info_topic", "odom_topic", "path_topic",
+                  "map_points_topic", "keyframe_path_topic"):
         if not p[topic]:
             raise ValueError(f"parameter {topic} must not be empty")
     T_base_cam = np.eye(4)

@@ -24,23 +24,31 @@ from rsvo_ros.odometry.pipeline import (
     FrameResult,
     OdometryPipeline,
     PipelineOptions,
+    warm_up,
 )
 from rsvo_ros.odometry.tracker import TrackerOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import (
+    POINT_FIELD_FLOAT32,
+    XYZ_FIELDS,
+    XYZ_POINT_STEP,
     CameraIntrinsics,
     camera_from_info,
     covariance_for_msg,
     image_to_gray,
     pose_components,
     stamp_ns,
+    xyz_cloud_data,
 )
-from rsvo_ros.twoview.estimator import MODELS, warm_up
+from rsvo_ros.twoview.estimator import MODELS
 
 EXIT_OK, EXIT_BAD_BAG, EXIT_USAGE = 0, 1, 2
 PATH_LENGTH = 1000  # poses kept in each /rsvo/path message (bounded)
 ODOM_TOPIC, PATH_TOPIC = "/rsvo/odom", "/rsvo/path"
+MAP_TOPIC, KEYFRAMES_TOPIC, TF_TOPIC = "/rsvo/map_points", "/rsvo/keyframes", "/tf"
+MAP_PERIOD_NS = 1_000_000_000  # map points and keyframe path: once per second of bag time
 ODOM_FRAME = "odom"
+TF_TYPE, CLOUD_TYPE = "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/PointCloud2"
 
 
 class ReplayError(Exception):
@@ -73,13 +81,35 @@ def _odometry(res: FrameResult):
                               pose_covariance=covariance_for_msg(res.covariance))  # fmt: skip
 
 
-def _path(poses: deque):
+def _path(poses, stamp_ns: int):
     ts = bagio.typestore()
     stamped = [ts.types["geometry_msgs/msg/PoseStamped"](
         header=bagio.header(s, ODOM_FRAME), pose=bagio.pose_msg(T[:3, :3], T[:3, 3]))
         for s, T in poses]  # fmt: skip
-    return ts.types[bagio.PATH_TYPE](header=bagio.header(poses[-1][0], ODOM_FRAME),
-                                     poses=stamped)  # fmt: skip
+    return ts.types[bagio.PATH_TYPE](header=bagio.header(stamp_ns, ODOM_FRAME), poses=stamped)
+
+
+def _tf(res: FrameResult):
+    ts = bagio.typestore()
+    (x, y, z), (qx, qy, qz, qw) = pose_components(res.T_world_cam)
+    vec, quat = ts.types["geometry_msgs/msg/Vector3"], ts.types["geometry_msgs/msg/Quaternion"]
+    tf = ts.types["geometry_msgs/msg/TransformStamped"](
+        header=bagio.header(res.stamp_ns, ODOM_FRAME), child_frame_id=bagio.CAMERA_FRAME,
+        transform=ts.types["geometry_msgs/msg/Transform"](
+            translation=vec(x=x, y=y, z=z), rotation=quat(x=qx, y=qy, z=qz, w=qw)))
+    return ts.types[TF_TYPE](transforms=[tf])
+
+
+def _cloud(points: np.ndarray, stamp_ns: int):
+    ts = bagio.typestore()
+    data = np.frombuffer(xyz_cloud_data(points), np.uint8)
+    field = ts.types["sensor_msgs/msg/PointField"]
+    return ts.types[CLOUD_TYPE](
+        header=bagio.header(stamp_ns, ODOM_FRAME), height=1, width=len(data) // XYZ_POINT_STEP,
+        fields=[field(name=n, offset=o, datatype=POINT_FIELD_FLOAT32, count=1)
+                for n, o in XYZ_FIELDS],
+        is_bigendian=False, point_step=XYZ_POINT_STEP, row_step=len(data), data=data,
+        is_dense=True)  # fmt: skip
 
 
 def replay(cfg: ReplayConfig) -> dict:
@@ -135,7 +165,10 @@ def replay(cfg: ReplayConfig) -> dict:
     results_meta = []
     gt: dict[int, np.ndarray] = {}
     gt_w: dict[int, np.ndarray] = {}  # the ground truth's angular velocity (row-0 frame)
-    est: dict[int, np.ndarray] = {}
+    est: dict[int, np.ndarray] = {}  # the current trajectory (a time reset starts another)
+    trajectories: list[dict[int, np.ndarray]] = [est]
+    time_resets = 0
+    last_map_ns = None
     pipeline: OdometryPipeline | None = None
     camera: CameraIntrinsics | None = None
     poses: deque = deque(maxlen=PATH_LENGTH)
@@ -158,6 +191,15 @@ def replay(cfg: ReplayConfig) -> dict:
     with writer, open(cfg.output / "trajectory.tum", "w") as tum:
         c_odom = writer.add_connection(ODOM_TOPIC, bagio.ODOMETRY_TYPE, typestore=ts)
         c_path = writer.add_connection(PATH_TOPIC, bagio.PATH_TYPE, typestore=ts)
+        c_tf = writer.add_connection(TF_TOPIC, TF_TYPE, typestore=ts)
+        c_map = writer.add_connection(MAP_TOPIC, CLOUD_TYPE, typestore=ts)
+        c_kf = writer.add_connection(KEYFRAMES_TOPIC, bagio.PATH_TYPE, typestore=ts)
+
+        def write_map(stamp: int) -> None:
+            writer.write(c_map, stamp, bagio.serialize(_cloud(pipeline.map_points(), stamp)))
+            writer.write(c_kf, stamp, bagio.serialize(_path(
+                pipeline.keyframe_poses()[-PATH_LENGTH:], stamp)))
+
         try:
             for conn, _t, raw in reader.messages(connections=wanted):
                 try:
@@ -207,30 +249,46 @@ def replay(cfg: ReplayConfig) -> dict:
                     skipped[res.reason.split(" (")[0]] += 1
                     continue
                 statuses[res.status] += 1
+                if res.time_reset:
+                    time_resets += 1
+                    if last_map_ns is not None:
+                        write_map(last_map_ns)  # the last map of the ended trajectory
+                    est, last_map_ns = {}, None
+                    trajectories.append(est)
+                    poses.clear()
                 est[stamp] = res.T_world_cam
                 tum.write(_pose_line(stamp, res.T_world_cam) + "\n")
                 writer.write(c_odom, stamp, bagio.serialize(_odometry(res)))
+                writer.write(c_tf, stamp, bagio.serialize(_tf(res)))
                 poses.append((stamp, res.T_world_cam))
-                writer.write(c_path, stamp, bagio.serialize(_path(poses)))
+                writer.write(c_path, stamp, bagio.serialize(_path(poses, stamp)))
+                if last_map_ns is None or stamp - last_map_ns >= MAP_PERIOD_NS:
+                    write_map(stamp)
+                    last_map_ns = stamp
                 results_meta.append({"stamp_ns": stamp, "status": res.status,
                                      "inlier_ratio": res.inlier_ratio,
                                      "inliers": res.num_inliers, "tracks": res.num_tracks,
                                      "time_ms": res.time_ms, "reason": res.reason,
-                                     "keyframe": res.keyframe})  # fmt: skip
+                                     "keyframe": res.keyframe,
+                                     "tracking": res.tracking})  # fmt: skip
         except Exception as exc:  # truncated / corrupt storage in the middle of the bag
             skipped[f"bag read stopped: {type(exc).__name__}: {exc}"[:200]] += 1
         finally:
+            if est and results_meta and results_meta[-1]["stamp_ns"] != last_map_ns:
+                write_map(results_meta[-1]["stamp_ns"])  # the final map and keyframes
             reader.close()
             if bar is not None:
                 bar.close()
     wall = time.perf_counter() - t_start
     frames_in = sum(statuses.values()) + sum(skipped.values())
+    trajectories = [t for t in trajectories if t]
+    est = max(trajectories, key=len) if trajectories else {}
     summary = {
         "bag": str(cfg.bag), "model": cfg.model, "backend": options.backend,
         "motion_prior": options.motion_prior,
         "line_delay_s": line_delay,
         "image_topic": cfg.image_topic, "frames_in_bag": n_images,
-        "frames_in": frames_in, "frames_posed": len(est),
+        "frames_in": frames_in, "frames_posed": sum(len(t) for t in trajectories),
         "frames_estimated": statuses.get("posed", 0), "frames_held": statuses.get("held", 0),
         "frames_skipped": sum(skipped.values()), "skipped_reasons": dict(skipped),
         "inlier_ratio_mean": float(np.mean([m["inlier_ratio"] for m in results_meta
@@ -241,11 +299,25 @@ def replay(cfg: ReplayConfig) -> dict:
                                                      or [0.0], 95)),
         "wall_time_s": wall, "frames_per_second": frames_in / max(wall, 1e-9),
         "solver_warm_up_s": warm_s,
+        # time that jumped back (a looped bag): each reset starts a trajectory; "accuracy" is
+        # that of the longest one
+        "time_resets": time_resets,
+        "trajectories": [{"first_stamp_ns": min(t), "frames": len(t)} for t in trajectories],
     }  # fmt: skip
     if gt and len(est) >= 3:
         summary["accuracy"] = accuracy(gt, est)
+        for t, row in zip(trajectories, summary["trajectories"], strict=True):
+            if len(t) >= 3 and sum(s in gt for s in t) >= 3:
+                row["ate_m_rmse"] = accuracy(gt, t)["ate_m"]["rmse"]
     if pipeline is not None and options.backend == "window":
         summary["keyframes"] = keyframe_summary(pipeline.window.keyframe_log, gt_w)
+        kf_poses = dict(pipeline.keyframe_poses())
+        with open(cfg.output / "keyframes.tum", "w") as f:
+            f.writelines(_pose_line(s, T) + "\n" for s, T in sorted(kf_poses.items()))
+        if gt and sum(s in gt for s in kf_poses) >= 3:
+            # the corrected keyframe trajectory (the window's last word on each keyframe),
+            # beside the continuous published odometry above
+            summary["keyframes"]["accuracy"] = accuracy(gt, kf_poses)
     summary["frames"] = results_meta
     with open(cfg.output / "summary.json", "w") as f:
         json.dump(summary, f, indent=1)

@@ -135,3 +135,29 @@ def test_scale_follows_a_camera_that_speeds_up():
     growth_est = b_est[-5:].mean() / b_est[:5].mean()
     assert growth_gt > 1.05
     assert growth_est == pytest.approx(growth_gt, rel=0.03)
+
+
+def test_time_jumps_late_frames_far_ahead_stamps_and_pauses():
+    cfg = SynthConfig(frames=8, motion="vehicle", severity=0.5, width=320, height=180, seed=2)
+    frames = render_sequence(cfg)
+    renderer = SequenceRenderer(cfg)
+    pipe = OdometryPipeline(renderer.K, None, cfg.tau, PipelineOptions(model="gs"))
+    ns = [round(f.stamp * 1e9) for f in frames]  # 33.3 ms apart
+    img = [f.image for f in frames]
+    out = [pipe.process(ns[k], img[k]) for k in range(4)]
+    assert all(r.has_pose for r in out)
+    late = pipe.process(ns[3] - 10_000_000, img[2])  # a late frame: skipped
+    assert late.status == "skipped" and "backwards" in late.reason
+    ahead = pipe.process(ns[4] + 500 * 10**9, img[4])  # a corrupt stamp: skipped, clock kept
+    assert ahead.status == "skipped" and "far ahead" in ahead.reason
+    assert pipe.process(ns[4], img[4]).status == "posed"
+    # a pause: two frames agree on a time 5 s later: the stream goes on from there
+    gap = 5 * 10**9
+    assert pipe.process(ns[5] + gap, img[5]).status == "skipped"
+    resumed = pipe.process(ns[6] + gap, img[6])
+    assert resumed.status != "skipped" and not resumed.time_reset
+    # time back by more than two frames: a new trajectory from the identity
+    reset = pipe.process(ns[0], img[0])
+    assert reset.time_reset and reset.status == "first" and "time jumped back" in reset.reason
+    assert np.allclose(reset.T_world_cam, np.eye(4))
+    assert pipe.process(ns[1], img[1]).has_pose

@@ -141,6 +141,41 @@ def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_pa
     assert ate < 0.1 * _path_length(gt)
 
 
+BASE_TO_CAMERA = [0.1, 0.0, 0.2, -0.5, 0.5, -0.5, 0.5]  # optical frame on a x-forward base
+
+
+def test_tf_map_points_and_keyframes_for_a_separate_process(graph, small_bag):
+    """/tf carries odom -> base_link with every odometry message (same stamp and pose),
+    /tf_static the base -> camera transform for a subscriber that comes after everything, the
+    map points are an x/y/z float32 cloud in odom, the keyframe path grows."""
+    args = ["-p", "model:=rs", "-p", "line_delay:=0.0002", "-p", "base_frame:=base_link",
+            "-p", f"base_to_camera:={BASE_TO_CAMERA}", "-p", "map_publish_period_s:=0.0"]
+    data = _run_graph(graph, small_bag, args, ["--rate", "0.25"], FRAMES)
+    odom = {o["stamp_ns"]: o for o in data["odom"]}
+    assert len(odom) >= FRAMES - 2 and {o["child"] for o in odom.values()} == {"base_link"}
+    tf = {t["stamp_ns"]: t for t in data["tf"]}
+    assert sorted(tf) == sorted(odom)
+    for stamp, t in tf.items():
+        assert (t["parent"], t["child"]) == ("odom", "base_link")
+        assert np.allclose(t["pose"], odom[stamp]["pose"], atol=1e-9)
+    (static,) = data["tf_static"]
+    assert (static["parent"], static["child"]) == ("base_link", "camera_optical_frame")
+    q, q_set = np.array(static["pose"][3:]), np.array(BASE_TO_CAMERA[3:])
+    assert np.allclose(static["pose"][:3], BASE_TO_CAMERA[:3]) and abs(q @ q_set) > 1 - 1e-9
+    from rosbags.typesys import Stores, get_typestore
+
+    official = get_typestore(Stores.ROS2_JAZZY).hash_rihs01("tf2_msgs/msg/TFMessage")
+    assert data["tf_type_hashes"] == [official]  # real ROS nodes accept our /tf
+    clouds = data["clouds"]
+    assert clouds and {c["frame_id"] for c in clouds} == {"odom"}
+    for c in clouds:
+        assert c["fields"] == [["x", 0, 7, 1], ["y", 4, 7, 1], ["z", 8, 7, 1]]
+        assert c["point_step"] == 12 and c["bytes"] == 12 * c["width"] and c["height"] == 1
+    assert max(c["width"] for c in clouds) >= 20  # the window's landmarks
+    assert len(data["keyframes"][-1]) >= 2
+    assert set(data["keyframes"][-1]) <= set(odom)
+
+
 def _pose_matrix(p):
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(p[3:]).as_matrix()
@@ -159,13 +194,10 @@ def test_colcon_installed_node_runs_the_same_graph(graph, small_bag, tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     site = next(install.glob("lib/python3*/site-packages"))
     graph.env["PYTHONPATH"] = str(site)
-    # The installed copy has a cold numba cache: warm_up() compiles the two-view kernels before
-    # the node subscribes, but the window backend's kernels still compile on first use (tens of
-    # seconds, frames dropped meanwhile; an open point of issue 14), so this graph runs the
-    # pairwise backend, whose kernels are all warmed up.
-    data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002",
-                                         "-p", "backend:=pairwise"],
-                      ["--rate", "0.1"], FRAMES,
+    # The installed copy has a cold numba cache: warm_up() compiles every kernel (two-view and
+    # window backend) before the node subscribes, so no frame waits for the compiler.
+    data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
+                      ["--rate", "0.25"], FRAMES,
                       node_cmd=[str(install / "lib" / "rsvo_ros" / "rsvo_node")])
     assert len(data["odom"]) == FRAMES, (data["diagnostics"][-1:], graph.log("node"))
 

@@ -54,7 +54,25 @@ def test_replay_writes_every_output(vehicle_bag, tmp_path, model, extra, capsys)
     assert vals.shape[1] == 8 and np.isfinite(vals).all()
     assert np.allclose(np.linalg.norm(vals[:, 4:], axis=1), 1.0)  # unit quaternions
     topics = _topics(out / "odometry")
-    assert topics == {"/rsvo/odom": summary["frames_posed"], "/rsvo/path": summary["frames_posed"]}
+    n = summary["frames_posed"]
+    assert {t: topics[t] for t in ("/rsvo/odom", "/rsvo/path", "/tf")} == \
+        {"/rsvo/odom": n, "/rsvo/path": n, "/tf": n}
+    # map points and keyframes at most once per second of bag time, and at the end
+    assert 1 <= topics["/rsvo/map_points"] == topics["/rsvo/keyframes"] <= 3
+    with Reader(out / "odometry") as r:
+        conns = [c for c in r.connections if c.topic in ("/tf", "/rsvo/map_points")]
+        last = {}
+        for c, _t, raw in r.messages(connections=conns):
+            last[c.topic] = bagio.deserialize(raw, c.msgtype)
+    (tf,) = last["/tf"].transforms
+    assert (tf.header.frame_id, tf.child_frame_id) == ("odom", "camera_optical_frame")
+    cloud = last["/rsvo/map_points"]
+    assert [(f.name, f.offset, f.datatype) for f in cloud.fields] == \
+        [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)]
+    assert cloud.header.frame_id == "odom" and len(cloud.data) == 12 * cloud.width
+    if summary["backend"] == "window":
+        assert cloud.width >= 20
+        assert (out / "keyframes.tum").read_text().count("\n") == summary["keyframes"]["count"]
     acc = summary["accuracy"]
     assert acc["matched_poses"] == summary["frames_posed"]
     assert np.isfinite(acc["ate_m"]["rmse"]) and acc["ate_m"]["rmse"] < 1.0
@@ -87,11 +105,15 @@ def _write_bad_bag(path: Path) -> int:
                 continue  # the first image comes before any camera info
             writer.write(cc, stamp, bagio.serialize(
                 bagio.camera_info_msg(stamp, renderer.K, cfg.width, cfg.height)))
-            if k == 5:  # the same image again, then one from the past
+            if k == 5:  # the same image again, then one from a few ms ago (a late frame)
                 writer.write(ci, stamp + 1, bagio.serialize(bagio.image_msg(stamp, fr.image)))
                 writer.write(ci, stamp + 2, bagio.serialize(
-                    bagio.image_msg(stamp - 200_000_000, frames[3].image)))
+                    bagio.image_msg(stamp - 10_000_000, frames[3].image)))
                 n += 2
+            if k == 6:  # a corrupt header: 1000 s in the future
+                writer.write(ci, stamp + 1, bagio.serialize(
+                    bagio.image_msg(stamp + 1000 * 10**9, frames[6].image)))
+                n += 1
     return n
 
 
@@ -104,9 +126,42 @@ def test_bad_messages_are_counted_and_the_rest_is_processed(tmp_path):
     assert s["frames_in"] == n
     assert s["frames_posed"] + s["frames_skipped"] == n
     reasons = " | ".join(s["skipped_reasons"])
-    for word in ("unsupported encoding", "bytes", "duplicate", "backwards"):
+    for word in ("unsupported encoding", "bytes", "duplicate", "backwards", "far ahead"):
         assert word in reasons, reasons
     assert s["frames_posed"] >= 4
+    assert s["time_resets"] == 0 and len(s["trajectories"]) == 1  # the clock was kept
+
+
+def test_looped_bag_gives_two_trajectories(tmp_path):
+    """The sequence twice with the same stamps (``ros2 bag play -l``): time jumps back, the
+    odometry resets and the second trajectory is the first again."""
+    cfg = SynthConfig(frames=10, motion="vehicle", severity=1.0, width=320, height=180, seed=1)
+    frames = list(SequenceRenderer(cfg))
+    renderer = SequenceRenderer(cfg)
+    bag = tmp_path / "looped"
+    ts = bagio.typestore()
+    with bagio.open_writer(bag, "sqlite3") as writer:
+        writer.set_custom_data(bagio.LINE_DELAY_KEY, str(cfg.tau))
+        ci = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
+        cc = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE, typestore=ts)
+        t_log = 0
+        for _loop in range(2):
+            for fr in frames:
+                stamp = 1_000_000_000 + round(fr.stamp * 1e9)
+                t_log += 1
+                writer.write(cc, t_log, bagio.serialize(
+                    bagio.camera_info_msg(stamp, renderer.K, cfg.width, cfg.height)))
+                writer.write(ci, t_log, bagio.serialize(bagio.image_msg(stamp, fr.image)))
+    out = tmp_path / "out"
+    assert replay_main([str(bag), "--output", str(out), "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["time_resets"] == 1 and s["frames_posed"] == 20
+    assert [t["frames"] for t in s["trajectories"]] == [10, 10]
+    assert s["frames"][10]["status"] == "first" and "time jumped back" in s["frames"][10]["reason"]
+    poses = np.array([[float(x) for x in ln.split()[1:]]
+                      for ln in (out / "trajectory.tum").read_text().splitlines()])
+    assert np.allclose(poses[:10], poses[10:], atol=1e-9)  # a reset is a fresh start
+    assert np.ptp(poses[:10, :3], axis=0).max() > 0.01  # and it moved
 
 
 @pytest.mark.parametrize("case, message", [

@@ -1,4 +1,5 @@
-"""Test helper process: record /rsvo/odom (and /diagnostics) to a JSON file.
+"""Test helper process: record /rsvo/odom (and /diagnostics, /tf, the map points, the keyframe
+path, and finally /tf_static as a late subscriber sees it) to a JSON file.
 
 usage: record_odom.py OUT.json EXPECTED TIMEOUT_S
 Writes OUT.json.ready once a /rsvo/odom publisher is discovered (the test starts the player
@@ -14,7 +15,9 @@ import time
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from tf2_msgs.msg import TFMessage
 
 IDLE_S = 5.0
 
@@ -41,7 +44,34 @@ def main():
                 row.update(message=st.message, level=int(level), t_recv=time.monotonic())
                 diags.append(row)
 
+    tfs, clouds, keyframes, static = [], [], [], []
+
+    def stamp(h):
+        return h.stamp.sec * 1_000_000_000 + h.stamp.nanosec
+
+    def on_tf(m):
+        for t in m.transforms:
+            tr, q = t.transform.translation, t.transform.rotation
+            tfs.append({"stamp_ns": stamp(t.header), "parent": t.header.frame_id,
+                        "child": t.child_frame_id, "pose": [tr.x, tr.y, tr.z, q.x, q.y, q.z,
+                                                            q.w]})
+
+    def on_cloud(m):
+        clouds.append({"frame_id": m.header.frame_id, "width": m.width, "height": m.height,
+                       "point_step": m.point_step, "bytes": len(m.data),
+                       "fields": [[f.name, f.offset, f.datatype, f.count] for f in m.fields]})
+
+    def on_static(m):
+        for t in m.transforms:
+            tr, q = t.transform.translation, t.transform.rotation
+            static.append({"parent": t.header.frame_id, "child": t.child_frame_id,
+                           "pose": [tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w]})
+
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(TFMessage, "/tf", on_tf, qos)
+    node.create_subscription(PointCloud2, "/rsvo/map_points", on_cloud, qos)
+    node.create_subscription(Path, "/rsvo/keyframes", lambda m: keyframes.append(
+        [stamp(p.header) for p in m.poses]), qos)
     node.create_subscription(Odometry, "/rsvo/odom", on_odom, qos)
     node.create_subscription(Path, "/rsvo/path", lambda m: paths.append(len(m.poses)), qos)
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
@@ -61,8 +91,18 @@ def main():
             break
         if odom and time.time() - odom[-1]["t_recv"] > IDLE_S:
             break
+    # a late subscriber (after every odometry message) still gets the latched static transform
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_subscription(TFMessage, "/tf_static", on_static, latched)
+    t_static = time.monotonic() + 5.0
+    while time.monotonic() < t_static and not static:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    tf_hashes = sorted({str(i.topic_type_hash) for i in node.get_publishers_info_by_topic("/tf")})
     with open(out, "w") as f:
-        json.dump({"odom": odom, "diagnostics": diags, "path_lengths": paths}, f)
+        json.dump({"odom": odom, "diagnostics": diags, "path_lengths": paths, "tf": tfs,
+                   "clouds": clouds, "keyframes": keyframes, "tf_static": static,
+                   "tf_type_hashes": tf_hashes}, f)
     node.destroy_node()
     rclpy.try_shutdown()
 
