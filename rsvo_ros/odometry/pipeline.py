@@ -91,6 +91,7 @@ class FrameResult:
     tracking: str = "tracking"
     velocity: tuple[np.ndarray, np.ndarray] | None = None  # window: (w, v) in the row-0 frame
     time_reset: bool = False  # time jumped back: this frame starts a new trajectory
+    mapping_ms: float = 0.0  # window: the part of time_ms spent in the window BA (keyframes)
 
     @property
     def has_pose(self) -> bool:
@@ -310,7 +311,8 @@ class OdometryPipeline:
         return result(out.status, reason, num_tracks=n, num_inliers=out.inliers,
                       inlier_ratio=out.inliers / max(out.tracked, 1),
                       pts_prev=pair.pts_prev, pts_curr=pair.pts_curr,
-                      keyframe=out.keyframe, velocity=velocity)  # fmt: skip
+                      keyframe=out.keyframe, velocity=velocity,
+                      mapping_ms=out.ba.time_ms if out.ba is not None else 0.0)  # fmt: skip
 
 
 def warm_up() -> float:

@@ -3,10 +3,12 @@
     python -m rsvo_ros.ros.latency --rate 15 --resolution 1280x720 --frames 90
 
 Publishes rendered rolling-shutter frames (and camera info) stamped with the wall clock at the
-given rate, subscribes to ``/rsvo/odom`` and reports, per run: frames sent, odometry received
-(the node drops frames it cannot keep up with and counts them), and the latency from the image
-stamp to the odometry's arrival (median, p95). Start the node first, e.g.
-``rsvo_node --ros-args -p model:=gs -p line_delay:=5e-5``.
+given rate, subscribes to ``/rsvo/odom`` and ``/diagnostics`` and reports, per run: frames sent,
+odometry received (the node drops frames it cannot keep up with and counts them), the latency
+from the image stamp to the odometry's arrival (median, p95), the node's own stage times from its
+diagnostics (tracking per frame, mapping per keyframe, medians) and its CPU use (% of one core,
+from /proc; the node is found by name or ``--node-pid``). Start the node first, e.g.
+``rsvo_node --ros-args -p line_delay:=5e-5``.
 """
 
 from __future__ import annotations
@@ -27,10 +29,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=60, help="frames per rate")
     p.add_argument("--motion", default="vehicle")
     p.add_argument("--json", default=None, help="also write the results here")
+    p.add_argument("--node-pid", type=int, default=None,
+                   help="the node's process id (default: the process running rsvo_node)")
     args = p.parse_args(argv)
     w, h = (int(x) for x in args.resolution.split("x"))
 
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import CameraInfo, Image
@@ -50,6 +55,16 @@ def main(argv: list[str] | None = None) -> int:
         Odometry, "/rsvo/odom",
         lambda m: got.setdefault(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
                                  time.time()), qos)  # fmt: skip
+    diag: dict[str, str] = {}
+
+    def on_diag(m):
+        for st in m.status:
+            if st.name.startswith("rsvo_node"):
+                diag.clear()
+                diag.update({kv.key: kv.value for kv in st.values})
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    pid = args.node_pid or _find_pid("rsvo_node")
     t_end = time.monotonic() + 30
     while time.monotonic() < t_end and (pub_img.get_subscription_count() == 0
                                         or node.count_publishers("/rsvo/odom") == 0):
@@ -61,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     for rate in args.rate:
         got.clear()
         sent = []
+        cpu0 = _cpu_seconds(pid)
         t0 = time.monotonic()
         for k, data in enumerate(images):
             due = t0 + k / rate
@@ -77,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
             pub_info.publish(info)
             pub_img.publish(img)
             sent.append(ns)
+        t_sent = time.monotonic()
+        cpu1 = _cpu_seconds(pid)
         t_drain = time.monotonic() + 5.0
         while time.monotonic() < t_drain:
             rclpy.spin_once(node, timeout_sec=0.05)
@@ -84,7 +102,12 @@ def main(argv: list[str] | None = None) -> int:
         row = {"rate_hz": rate, "resolution": args.resolution, "sent": len(sent),
                "odometry": len(lat),
                "latency_ms_median": float(np.median(lat)) if len(lat) else None,
-               "latency_ms_p95": float(np.percentile(lat, 95)) if len(lat) else None}
+               "latency_ms_p95": float(np.percentile(lat, 95)) if len(lat) else None,
+               "node_cpu_percent": None if cpu0 is None or cpu1 is None
+               else 100.0 * (cpu1 - cpu0) / (t_sent - t0),
+               "tracking_ms_median": diag.get("tracking_time_ms_median"),
+               "mapping_ms_median": diag.get("mapping_time_ms_median"),
+               "processing_ms_median": diag.get("processing_time_ms_median")}
         results.append(row)
         print(json.dumps(row))
     if args.json:
@@ -93,6 +116,36 @@ def main(argv: list[str] | None = None) -> int:
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
+
+
+def _find_pid(name: str) -> int | None:
+    """The first process (not this one) whose command line names ``name``."""
+    import os
+    from pathlib import Path
+
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit() or int(d.name) == os.getpid():
+            continue
+        try:
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if name in cmd and "latency" not in cmd:
+            return int(d.name)
+    return None
+
+
+def _cpu_seconds(pid: int | None) -> float | None:
+    """User + system CPU seconds of a process (all its threads), None if unknown."""
+    if pid is None:
+        return None
+    import os
+
+    try:
+        fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 if __name__ == "__main__":

@@ -20,6 +20,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry, Path
+from rclpy.clock import JumpThreshold
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
@@ -77,10 +79,12 @@ class RsvoNode(Node):
         self._camera: tuple | None = None
         self.pipeline: OdometryPipeline | None = None
         self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
-                      "held": 0}  # fmt: skip
+                      "held": 0, "time_resets": 0}  # fmt: skip
         self._bad_kinds: set[str] = set()
         self._recv_times: deque = deque(maxlen=100)
         self._proc_ms: deque = deque(maxlen=100)
+        self._track_ms: deque = deque(maxlen=100)  # per frame, without the window BA
+        self._map_ms: deque = deque(maxlen=100)  # per keyframe: the window BA
         self._last_inlier_ratio = 0.0
         self._state = "waiting for camera info"
         self._tracking = "initialising"
@@ -106,6 +110,11 @@ class RsvoNode(Node):
                                                                TF_STATIC_QOS)  # fmt: skip
                     self._publish_static_tf()
         self.create_service(Trigger, "/rsvo/reset", self._on_reset)
+        # ROS time going back (a /clock restart under use_sim_time) resets the odometry; image
+        # stamps that go back are caught by the pipeline itself
+        self._clock_jump = self.get_clock().create_jump_callback(
+            JumpThreshold(min_forward=None, min_backward=Duration(seconds=-0.5),
+                          on_clock_change=True), post_callback=self._on_clock_jump)
         self.sub_info = self.create_subscription(CameraInfo, self.p["camera_info_topic"],
                                                  self._on_info, qos_profile_sensor_data)
         self.sub_image = None
@@ -163,6 +172,15 @@ class RsvoNode(Node):
                 self.stats["dropped"] += 1  # the worker is busy: keep only the newest
             self._pending = (msg, time.monotonic())
         self._wake.set()
+
+    def _on_clock_jump(self, jump) -> None:
+        with self._lock:
+            if self.pipeline is not None:
+                self.pipeline.reset()
+            self._path.clear()
+            self.stats["time_resets"] += 1
+        self.get_logger().warning("ROS time jumped back (a /clock restart?): odometry reset, "
+                                  "the next frame starts a new trajectory")
 
     def _on_reset(self, request, response):
         with self._lock:
@@ -232,7 +250,14 @@ class RsvoNode(Node):
             self.pipeline.set_camera(K, D, float(self.p["line_delay"]))
             res = self.pipeline.process(stamp_ns(msg.header), gray)
         self._proc_ms.append((time.perf_counter() - t0) * 1e3)
+        self._track_ms.append(res.time_ms - res.mapping_ms)
+        if res.mapping_ms > 0:
+            self._map_ms.append(res.mapping_ms)
         self.stats["processed"] += 1
+        if res.time_reset:
+            self.stats["time_resets"] += 1
+            self._path.clear()
+            self.get_logger().warning(f"image stamps: {res.reason.split(' (')[0]}")
         if res.status == "skipped":
             self.stats["skipped"] += 1
             self._bad(res.reason.split(" (")[0])
@@ -337,6 +362,10 @@ class RsvoNode(Node):
         vals = {
             "input_rate_hz": f"{rate:.2f}",
             "processing_time_ms_median": f"{np.median(self._proc_ms):.1f}" if self._proc_ms
+            else "n/a",
+            "tracking_time_ms_median": f"{np.median(self._track_ms):.1f}" if self._track_ms
+            else "n/a",
+            "mapping_time_ms_median": f"{np.median(self._map_ms):.1f}" if self._map_ms
             else "n/a",
             "inlier_ratio": f"{self._last_inlier_ratio:.3f}",
             "tracking_state": self._tracking,

@@ -163,3 +163,45 @@ def test_frames_arriving_while_busy_are_dropped_not_queued(ros_context):
         assert seen == [msgs[0], msgs[4]]  # the newest frame, nothing queued
     finally:
         h.close()
+
+
+def test_looped_input_resets_and_gives_two_trajectories(ros_context):
+    """Time going back (a looped bag, a restarted simulator) resets the odometry: the second
+    pass is a new trajectory from the origin, counted in the diagnostics."""
+    h = Harness(ros_context, [Parameter("model", value="gs")])
+    try:
+        info, msgs = _frames(5)
+        h.feed(info, msgs)
+        h.feed(info, msgs)
+        assert len(h.odom) == 10
+        assert h.node.stats["time_resets"] == 1
+        p = [o.pose.pose.position for o in h.odom]
+        assert np.allclose([p[5].x, p[5].y, p[5].z], 0.0)
+        assert np.allclose([[q.x, q.y, q.z] for q in p[:5]], [[q.x, q.y, q.z] for q in p[5:]])
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize("mode", ["large_covariance", "none"])
+def test_lost_tracking_is_visible_to_consumers(ros_context, mode):
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("lost_odometry", value=mode)])
+    try:
+        info, msgs = _frames(6)
+        blank = []
+        for m in msgs[4:]:  # textureless frames: nothing to track
+            b = Image()
+            b.height, b.width, b.encoding, b.step = m.height, m.width, m.encoding, m.step
+            b.data = bytes(len(m.data))
+            b.header = m.header
+            blank.append(b)
+        h.feed(info, msgs[:4] + blank)
+        assert h.node._tracking == "lost" and h.node._state.startswith("lost")
+        if mode == "none":
+            assert len(h.odom) == 4
+        else:
+            assert len(h.odom) == 6
+            assert max(h.odom[0].pose.covariance) < 1e3
+            assert np.allclose(np.diag(np.reshape(h.odom[-1].pose.covariance, (6, 6))), 1e6)
+    finally:
+        h.close()
