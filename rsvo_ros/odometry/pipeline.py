@@ -141,6 +141,8 @@ class OdometryPipeline:
         self._index = 0
         self._started = False
         tau = self.line_delay if o.model == "rs" else 0.0
+        if hasattr(self, "window"):
+            self.window.close()  # its mapping thread (async mapping)
         self.chain = PairwiseChain(self.K, self.D, self.line_delay, o.model, o.mode, o.ransac,
                                    o.lm, o.initial_scale, o.motion_prior, o.max_scale_change,
                                    o.seed)  # fmt: skip
@@ -283,10 +285,9 @@ class OdometryPipeline:
         if bootstrap and not self.window.initialising:
             self.T_odom_world = np.eye(4)  # the new map starts in the chain's (published) frame
         if state is not None and out.status == "posed":
-            if out.state_before_ba is not None:  # the BA moved this frame: keep odom continuous
-                T_before = self.window.row0_pose(out.state_before_ba)
-                T_after = self.window.row0_pose(state)
-                self.T_odom_world = self.T_odom_world @ T_before @ pose_inverse(T_after)
+            for before, after in out.ba_moved:  # a BA moved a frame: keep odometry continuous
+                self.T_odom_world = self.T_odom_world @ self.window.row0_pose(before) \
+                    @ pose_inverse(self.window.row0_pose(after))
             # held frames keep the last pose
             self.T_world_cam = self.T_odom_world @ self.window.row0_pose(state)
         if out.status == "posed":

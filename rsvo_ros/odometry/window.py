@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,6 +66,10 @@ class WindowOptions:
     # its world and scale (False: hold them at the first frame's pose)
     pairwise_bootstrap: bool = True
     min_shared_for_scale: int = 8
+    # mapping (keyframe insertion and the window BA) on a background thread: tracking goes on
+    # against the map it has and picks up the refined map at its next frame; while mapping is
+    # busy no new keyframe is made (ORB-SLAM's rule). False: inline (deterministic; the replay)
+    async_mapping: bool = False
 
 
 @dataclass
@@ -95,9 +98,10 @@ class WindowResult:
     hessian: np.ndarray | None = None  # (12, 12) of tracking, px^-2 units
     sigma2: float = 1.0  # residual variance of tracking (px^2)
     ba: BAReport | None = None
-    # where the frame was before this frame's window BA moved it (keyframes): the pipeline keeps
-    # its published odometry continuous across the correction
-    state_before_ba: FrameState | None = None
+    # a window BA moved a frame (this one inline, or a keyframe whose mapping finished since
+    # the last frame): its state (before, after); the pipeline keeps its published odometry
+    # continuous across that correction
+    ba_moved: list[tuple[FrameState, FrameState]] = field(default_factory=list)
 
 
 class WindowOdometry:
@@ -136,7 +140,12 @@ class WindowOdometry:
         self._lost = 0
         self._tracked_at_kf = 0
         self._hints: dict[int, np.ndarray] = {}  # stamp -> the chain's row-0 pose
-        self._lock = threading.Lock()
+        if getattr(self, "_mapper", None) is not None:
+            self._mapper.close()
+        self._mapper = Mapper(self) if self.options.async_mapping else None
+        self._last_kf: KeyFrame | None = None  # the newest keyframe (maybe still being mapped)
+        self._picked: list[tuple[tuple[FrameState, FrameState], BAReport]] = []
+        self._lock = threading.Lock()  # one mapping at a time; tracking reads atomic snapshots
         self.keyframe_log: dict[int, FrameState] = {}  # stamp -> refined keyframe state
 
     # ------------------------------------------------------------------ helpers
@@ -232,10 +241,35 @@ class WindowOdometry:
             return self._start(stamp_ns, obs)
         if self._ref is not None:
             return self._initialise(stamp_ns, obs)
+        self._picked: list[tuple[tuple[FrameState, FrameState], BAReport]] = []
+        self._pick_up_mapping()
         result = self._track_map(stamp_ns, obs)
         if result is None:
             result = self._recover(stamp_ns, obs)
+        # the refined map from the background came first, then anything inline
+        result.ba_moved = [moved for moved, _ in self._picked] + result.ba_moved
+        if result.ba is None and self._picked:
+            result.ba = self._picked[-1][1]
         return result
+
+    def _pick_up_mapping(self) -> None:
+        """Async mapping: a keyframe whose window BA finished since the last frame. The frames
+        tracked meanwhile (in the map as it was) move with the keyframe's correction, so the
+        next prediction is in the refined map."""
+        if self._mapper is None:
+            return
+        done = self._mapper.finished()
+        if done is None:
+            return
+        kf, before, report = done
+        after = kf.state.copy() if kf in self.map.keyframes else before.copy()
+        self._last_kf = self.map.keyframes[-1] if self.map.keyframes else None
+        # world-frame correction of the map around the keyframe (row 0, as the pipeline's)
+        D = self.row0_pose(after) @ np.linalg.inv(self.row0_pose(before))
+        for st in (self._last, self._before):
+            if st is not None:
+                st.R, st.p = D[:3, :3] @ st.R, D[:3, :3] @ st.p + D[:3, 3]
+        self._picked.append(((before, after), report))
 
     def _start(self, stamp_ns: int, obs: Observations) -> WindowResult:
         origin = self._origin or FrameState(stamp_ns, np.eye(3), np.zeros(3))
@@ -275,6 +309,8 @@ class WindowOdometry:
         ref.velocity_prior = vel_ref
         kf = self._new_keyframe(state, obs, vel_cur)
         before = state.copy()
+        if self._mapper is not None:
+            self._mapper.wait_idle()
         with self._lock:
             self.map.add_keyframe(ref)
             self.map.add_keyframe(kf)
@@ -289,12 +325,13 @@ class WindowOdometry:
         self._origin = None
         self._hints.clear()
         self._before, self._last = ref.state.copy(), kf.state.copy()
+        self._last_kf = self.map.keyframes[-1]
         self._tracked_at_kf = len(self.map.landmarks)
-        if not hinted:
-            before = None  # the world itself moved (rebased): nothing was published in it yet
+        # (rebased: the world itself moved, and nothing was published in it yet)
+        moved = [(before, kf.state.copy())] if hinted else []
         return WindowResult("posed", "initialised the map", self._last.copy(),
                             inliers=res.num_inliers, tracked=len(self.map.landmarks),
-                            keyframe=True, ba=report, state_before_ba=before)  # fmt: skip
+                            keyframe=True, ba=report, ba_moved=moved)  # fmt: skip
 
     def _rebase_to_row0_of(self, kf: KeyFrame) -> None:
         """Move the world so that the first keyframe's row-0 camera is the origin."""
@@ -307,9 +344,8 @@ class WindowOdometry:
 
     def _track_map(self, stamp_ns: int, obs: Observations) -> WindowResult | None:
         o = self.options
-        with self._lock:
-            ids, X = self._points
-            last_kf = self.map.keyframes[-1] if self.map.keyframes else None
+        ids, X = self._points  # an atomic snapshot: mapping replaces it when it is done
+        last_kf = self._last_kf
         _, ia, ib = np.intersect1d(ids, obs.ids, return_indices=True)
         if len(ia) < o.min_landmarks or last_kf is None:
             return None
@@ -333,17 +369,24 @@ class WindowOdometry:
                               hessian=H, sigma2=max(sigma2, 1e-6))  # fmt: skip
         if last_kf.after is None and last_kf.state.stamp_ns < stamp_ns:
             last_kf.after = state.copy()  # read by the next window BA
-        if self._needs_keyframe(last_kf, obs, state, int(inl.sum())):
+        mapping_busy = self._mapper is not None and self._mapper.busy
+        if not mapping_busy and self._needs_keyframe(last_kf, obs, state, int(inl.sum())):
             kf = self._new_keyframe(state, obs, (w.copy(), v.copy()))
             kf.before = self._last.copy()
             kf.rejected.update(int(t) for t in obs.ids[ib][~inl])
             result.keyframe = True
-            result.state_before_ba = state.copy()
-            result.ba = self.map_keyframe(kf)
-            refined = kf.state if kf in self.map.keyframes else state
-            state = refined.copy()
-            result.state = state.copy()
+            self._last_kf = kf
             self._tracked_at_kf = int(inl.sum())
+            if self._mapper is not None:
+                self._mapper.submit(kf, state.copy())
+            else:
+                before = state.copy()
+                result.ba = self.map_keyframe(kf)
+                self._last_kf = self.map.keyframes[-1] if self.map.keyframes else None
+                refined = kf.state if kf in self.map.keyframes else state
+                state = refined.copy()
+                result.state = state.copy()
+                result.ba_moved = [(before, state.copy())]
         self._lost = 0
         self._before, self._last = self._last, state.copy()
         return result
@@ -361,6 +404,9 @@ class WindowOdometry:
         """Too few map points: the pair estimator between the last keyframe and this frame,
         scaled by the landmarks they share; else hold, and after a few held frames start a new
         map where the trajectory stands."""
+        if self._mapper is not None:
+            self._mapper.wait_idle()  # the pair recovery and a map reset change the map
+            self._pick_up_mapping()
         last_kf = self.map.keyframes[-1] if self.map.keyframes else None
         if last_kf is not None:
             dt = (stamp_ns - last_kf.state.stamp_ns) * 1e-9
@@ -375,18 +421,19 @@ class WindowOdometry:
                     report = self.map_keyframe(kf)
                     state = kf.state.copy() if kf in self.map.keyframes else state
                     self._before, self._last = self._last, state.copy()
+                    self._last_kf = self.map.keyframes[-1] if self.map.keyframes else None
                     self._lost = 0
                     self._tracked_at_kf = len(self.map.landmarks)
                     return WindowResult("posed", "recovered with the pair estimator", state,
                                         inliers=res.num_inliers, keyframe=True, ba=report,
-                                        state_before_ba=before)  # fmt: skip
+                                        ba_moved=[(before, state.copy())])  # fmt: skip
         self._lost += 1
         held = self._last.copy()
         if self._lost >= self.options.lost_frames_to_reset:
             self._origin = held
             self.map = LocalMap(self.focal, self.options.map)
             self._points = (np.zeros(0, np.int64), np.zeros((0, 3)))
-            self._last = self._before = None
+            self._last = self._before = self._last_kf = None
             self._lost = 0
             started = self._start(stamp_ns, obs)
             started.reason = "lost: too few map points and no pair pose; a new map starts"
@@ -423,21 +470,28 @@ class WindowOdometry:
                 self.map.add_keyframe(kf)
             self.map.slide()
             report = self.map.optimize()
-            self._points = self.map.points()
-            for k in self.map.keyframes:
-                self.keyframe_log[k.state.stamp_ns] = k.state.copy()
+            points = self.map.points()
+            log = dict(self.keyframe_log)
+            log.update({k.state.stamp_ns: k.state.copy() for k in self.map.keyframes})
+            # replaced whole, never changed in place: tracking and the viewers read them
+            # without waiting for a BA
+            self._points, self.keyframe_log = points, log
         return report
 
     def map_points(self) -> np.ndarray:
         """(M, 3) world points of the local map's landmarks (what tracking matches)."""
-        with self._lock:
-            return self._points[1].copy()
+        return self._points[1].copy()
 
     def keyframe_poses(self) -> list[tuple[int, np.ndarray]]:
         """``(stamp_ns, row-0 T_world_camera)`` of every keyframe so far, as last refined."""
-        with self._lock:
-            log = sorted(self.keyframe_log.items())
-        return [(stamp, self.row0_pose(state)) for stamp, state in log]
+        return [(stamp, self.row0_pose(state)) for stamp, state in
+                sorted(self.keyframe_log.items())]
+
+    def close(self) -> None:
+        """Stop the mapping thread (async mapping)."""
+        if self._mapper is not None:
+            self._mapper.close()
+            self._mapper = None
 
     def row0_pose(self, state: FrameState) -> np.ndarray:
         """(4, 4) ``T_world_camera`` of a frame's row 0 (what the pipeline reports)."""
@@ -464,33 +518,57 @@ def covariance_from_tracking(result: WindowResult) -> np.ndarray:
 
 class Mapper:
     """Runs :meth:`WindowOdometry.map_keyframe` on a background thread (the node's mapping
-    path): tracking hands over keyframes and picks up the refined map at its next frame."""
+    path): tracking submits a keyframe when the mapper is idle and picks up the result with
+    :meth:`finished` at a later frame. The compiled kernels release the GIL, so on two cores
+    tracking and the window BA run side by side."""
 
     def __init__(self, odometry: WindowOdometry):
         self.odometry = odometry
-        self._queue: list[KeyFrame] = []
-        self._wake = threading.Event()
-        self._stop = threading.Event()
-        self.busy_ms: list[float] = []
+        self._job: tuple[KeyFrame, FrameState] | None = None
+        self._done: tuple[KeyFrame, FrameState, BAReport] | None = None
+        self._cv = threading.Condition()
+        self._stop = False
         self._thread = threading.Thread(target=self._run, name="rsvo_mapping", daemon=True)
         self._thread.start()
 
-    def submit(self, kf: KeyFrame) -> None:
-        self._queue.append(kf)
-        self._wake.set()
+    @property
+    def busy(self) -> bool:
+        """A keyframe is being mapped, or its result has not been picked up yet."""
+        with self._cv:
+            return self._job is not None or self._done is not None
+
+    def submit(self, kf: KeyFrame, state_before: FrameState) -> None:
+        with self._cv:
+            if self._job is not None or self._done is not None:
+                raise RuntimeError("the mapper is busy")
+            self._job = (kf, state_before)
+            self._cv.notify_all()
+
+    def finished(self) -> tuple[KeyFrame, FrameState, BAReport] | None:
+        """The mapped keyframe, its state when it was submitted and the BA report, once."""
+        with self._cv:
+            done, self._done = self._done, None
+            return done
+
+    def wait_idle(self, timeout: float = 30.0) -> None:
+        """Until the current job is done (its result stays to be picked up)."""
+        with self._cv:
+            self._cv.wait_for(lambda: self._job is None or self._stop, timeout)
 
     def _run(self) -> None:
-        while not self._stop.is_set():
-            if not self._wake.wait(0.1):
-                continue
-            self._wake.clear()
-            while self._queue:
-                kf = self._queue.pop(0)
-                t0 = time.perf_counter()
-                self.odometry.map_keyframe(kf)
-                self.busy_ms.append((time.perf_counter() - t0) * 1e3)
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._job is not None or self._stop)
+                if self._stop:
+                    return
+                kf, before = self._job
+            report = self.odometry.map_keyframe(kf)
+            with self._cv:
+                self._job, self._done = None, (kf, before, report)
+                self._cv.notify_all()
 
     def close(self) -> None:
-        self._stop.set()
-        self._wake.set()
-        self._thread.join(timeout=5.0)
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        self._thread.join(timeout=30.0)

@@ -202,6 +202,7 @@ class RsvoNode(Node):
                                motion_prior=bool(self.p["motion_prior"]))
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
+        opts.window.async_mapping = bool(self.p["async_mapping"])
         self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)
 
     def _bad(self, kind: str) -> None:
@@ -382,6 +383,8 @@ class RsvoNode(Node):
         self._stop.set()
         self._wake.set()
         self._worker.join(timeout=5.0)
+        if self.pipeline is not None:
+            self.pipeline.window.close()
         return super().destroy_node()
 
 

@@ -58,6 +58,9 @@ PARAMETERS = {
     "backend": ("window", _str("Odometry backend: window (keyframes, a local map and the RS "
                                "window bundle adjustment) or pairwise (the paper's chain of "
                                "frame pairs).", BACKENDS)),
+    "async_mapping": (True, _bool(
+        "Window backend: keyframe insertion and the window bundle adjustment on a background "
+        "thread, off the publishing path (false: inline, exactly as rsvo_replay).")),
     "max_features": (500, _int("Tracked corners (paper: 500).", 20, 5000)),
     "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
     "motion_prior": (True, _bool(

@@ -280,12 +280,15 @@ def replay(cfg: ReplayConfig) -> dict:
             if bar is not None:
                 bar.close()
     wall = time.perf_counter() - t_start
+    if pipeline is not None:
+        pipeline.window.close()
     frames_in = sum(statuses.values()) + sum(skipped.values())
     trajectories = [t for t in trajectories if t]
     est = max(trajectories, key=len) if trajectories else {}
     summary = {
         "bag": str(cfg.bag), "model": cfg.model, "backend": options.backend,
         "motion_prior": options.motion_prior,
+        "async_mapping": options.window.async_mapping,
         "line_delay_s": line_delay,
         "image_topic": cfg.image_topic, "frames_in_bag": n_images,
         "frames_in": frames_in, "frames_posed": sum(len(t) for t in trajectories),
@@ -442,6 +445,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="RS: estimate each frame pair on its own (the paper's setting) instead "
                         "of centring the velocity prior on the stream's constant velocity and "
                         "starting from the previous pair's motion")
+    p.add_argument("--async-mapping", action="store_true",
+                   help="window backend: map keyframes on a background thread as the live node "
+                        "does (default: inline, deterministic)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -452,11 +458,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_features < 20:
         print("rsvo_replay: --max-features must be at least 20", file=sys.stderr)
         return EXIT_USAGE
+    options = PipelineOptions(motion_prior=not args.no_motion_prior, backend=args.backend)
+    options.window.async_mapping = args.async_mapping
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
                        args.camera_info_topic, args.ground_truth_topic, args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
-                       PipelineOptions(motion_prior=not args.no_motion_prior,
-                                       backend=args.backend))  # fmt: skip
+                       options)  # fmt: skip
     try:
         s = replay(cfg)
     except (ValueError, FileExistsError) as exc:

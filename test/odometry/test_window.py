@@ -3,6 +3,8 @@ against the map, keyframes; on exact and on rendered data."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -140,3 +142,42 @@ def test_walk_motion_has_its_features():
     w = np.array([np.linalg.norm(traj.velocity(x)[0]) for x in t[1:][mid]])
     assert np.median(w) > np.radians(30)
     assert traj.pans  # and turns while walking
+
+
+def _walk_run(async_mapping: bool, frames: int = 60, seed: int = 0):
+    cfg = SynthConfig(frames=frames, motion="walk", severity=1.0, width=640, height=360,
+                      seed=seed)
+    renderer = SequenceRenderer(cfg)
+    opts = PipelineOptions()
+    opts.window.async_mapping = async_mapping
+    pipe = OdometryPipeline(renderer.K, None, cfg.tau, opts)
+    est, gt, steps, mapped = {}, {}, [], 0
+    prev = None
+    for f in renderer:
+        s = round(f.stamp * 1e9)
+        r = pipe.process(s, f.image)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = f.R_world_cam, f.p_world_cam
+        gt[s] = T
+        assert np.isfinite(r.T_world_cam).all()
+        est[s] = r.T_world_cam
+        mapped += r.mapping_ms > 0
+        if prev is not None:
+            steps.append(np.linalg.norm(r.T_world_cam[:3, 3] - prev[:3, 3]))
+        prev = r.T_world_cam
+        if async_mapping:
+            time.sleep(0.03)  # a camera's frame interval: mapping finishes in the background
+    pipe.window.close()
+    return accuracy(gt, est)["ate_m"]["rmse"], np.array(steps), mapped, pipe
+
+
+def test_async_mapping_tracks_every_frame_and_matches_inline_accuracy():
+    """Mapping on its own thread (the node's default): every frame posed, keyframes mapped in
+    the background and picked up, the published odometry without jumps, ATE close to inline."""
+    ate_inline, steps_inline, _, _ = _walk_run(False)
+    ate_async, steps_async, mapped, pipe = _walk_run(True)
+    assert mapped >= 2 and len(pipe.window.keyframe_log) >= 3
+    assert ate_async < 1.5 * ate_inline + 0.02, (ate_async, ate_inline)
+    # continuity: no published step much larger than the inline run's largest
+    assert steps_async.max() < 2.0 * steps_inline.max() + 1e-3
+    assert not pipe.window._mapper  # closed

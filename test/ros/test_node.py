@@ -107,7 +107,8 @@ def _run_graph(graph: Graph, bag: Path, node_args: list[str], play_args: list[st
 
 def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_path):
     """Player -> node -> separate subscriber; the trajectory is the offline pipeline's."""
-    data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
+    data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002",
+                                         "-p", "async_mapping:=false"],
                       ["--rate", "0.25"], FRAMES)
     odom = data["odom"]
     # reliable at 7.5 Hz: every frame (a frame dropped while the node was busy would show in
@@ -174,6 +175,15 @@ def test_tf_map_points_and_keyframes_for_a_separate_process(graph, small_bag):
     assert max(c["width"] for c in clouds) >= 20  # the window's landmarks
     assert len(data["keyframes"][-1]) >= 2
     assert set(data["keyframes"][-1]) <= set(odom)
+    # mapping ran on the node's background thread (the default): the same accuracy as the
+    # offline (inline) replay, within 5 %
+    replay_main([str(small_bag), "--output", str(graph.tmp / "ref"), "--line-delay", "0.0002",
+                 "--no-progress"])
+    ref = json.loads((graph.tmp / "ref" / "summary.json").read_text())["accuracy"]["ate_m"]
+    T_bc = _pose_matrix(BASE_TO_CAMERA)  # back from base_link to the camera
+    est = {s: np.linalg.inv(T_bc) @ _pose_matrix(o["pose"]) @ T_bc for s, o in odom.items()}
+    ate = accuracy(read_ground_truth(small_bag), est)["ate_m"]["rmse"]
+    assert ate <= 1.05 * ref["rmse"] + 1e-3, (ate, ref["rmse"])
 
 
 def _pose_matrix(p):
