@@ -29,6 +29,7 @@ setup(
             "rsvo_synth = rsvo_ros.tools.synth_bag:main",
             "rsvo_bench = rsvo_ros.tools.bench:main",
             "rsvo_play = rsvo_ros.ros.play:main",
+            "rsvo_calibrate = rsvo_ros.tools.calibrate:main",
         ],
     },
 )

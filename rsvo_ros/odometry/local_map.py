@@ -96,6 +96,8 @@ class WindowProblem:
     n_cols: int
     lm_ids: list = field(default_factory=list)
     obs_tid: list = field(default_factory=list)
+    obs_rows: np.ndarray | None = None  # (n,) sensor rows of the observations
+    lm_rows: np.ndarray | None = None  # (M,) sensor rows of the landmarks' anchor observations
 
 
 @dataclass
@@ -153,6 +155,7 @@ class LocalMap:
     def __init__(self, focal: float, options: MapOptions | None = None):
         self.focal = float(focal)
         self.options = options or MapOptions()
+        self.last_problem: WindowProblem | None = None
         self.keyframes: list[KeyFrame] = []
         self.landmarks: dict[int, Landmark] = {}
         self._index: dict[int, dict[int, int]] = {}  # keyframe id -> track id -> obs index
@@ -259,7 +262,7 @@ class LocalMap:
         kf_pos = {kf.id: k for k, kf in enumerate(self.keyframes)}
         lm_pos = {tid: j for j, tid in enumerate(lm_ids)}
         lm_anchor = np.array([kf_pos[self.landmarks[t].anchor] for t in lm_ids], np.int64)
-        obs_kf, obs_lm, obs_x, obs_s, obs_tid = [], [], [], [], []
+        obs_kf, obs_lm, obs_x, obs_s, obs_tid, obs_rows = [], [], [], [], [], []
         for k, kf in enumerate(self.keyframes):
             for n, tid in enumerate(kf.obs.ids.tolist()):
                 j = lm_pos.get(tid)
@@ -270,6 +273,7 @@ class LocalMap:
                 obs_x.append(kf.obs.x[n])
                 obs_s.append(kf.obs.s[n])
                 obs_tid.append(tid)
+                obs_rows.append(kf.obs.rows[n])
         if not obs_kf:
             return None
         held = np.zeros((K, rs_projection.FRAME_PARAMS), bool)
@@ -297,13 +301,30 @@ class LocalMap:
             np.array([self.landmarks[t].x for t in lm_ids]),
             np.array([self.landmarks[t].s for t in lm_ids]),
             np.array([self.landmarks[t].rho for t in lm_ids]), self.focal, o.robust_px, mu, p2,
-            col, int((~held).sum()), lm_ids, obs_tid)  # fmt: skip
+            col, int((~held).sum()), lm_ids, obs_tid, np.array(obs_rows, float),
+            np.array([self._anchor_row(t) for t in lm_ids], float))  # fmt: skip
+
+    def _anchor_row(self, tid: int) -> float:
+        lm = self.landmarks[tid]
+        kf = next(k for k in self.keyframes if k.id == lm.anchor)
+        return float(kf.obs.rows[self._index[kf.id][tid]])
+
+    def set_row_times(self, row_time) -> None:
+        """Recompute every observation's row time with ``row_time(rows)`` (another line delay),
+        and the landmarks' anchor row times with them."""
+        for kf in self.keyframes:
+            kf.obs.s = row_time(kf.obs.rows)
+        by_id = {kf.id: kf for kf in self.keyframes}
+        for tid, lm in self.landmarks.items():
+            kf = by_id[lm.anchor]
+            lm.s = float(kf.obs.s[self._index[kf.id][tid]])
 
     def optimize(self, iterations: int | None = None) -> BAReport:
         """The window BA (:func:`solve_window`); then rejects outlying observations and drops
         landmarks left with no observation but their anchor."""
         t0 = time.perf_counter()
         prob = self.problem()
+        self.last_problem = prob  # read by the line-delay calibration
         if prob is None:
             return BAReport(0.0, 0, 0.0, 0, len(self.landmarks), 0, 0)
         sol = solve_window(prob, iterations or self.options.ba_iterations)

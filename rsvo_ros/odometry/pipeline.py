@@ -15,6 +15,7 @@ Poses are ``T_world_camera`` of each frame's row-0 camera (CONTRACTS.md).
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -23,6 +24,11 @@ import numpy as np
 from rsvo_ros.core.geometry import pose_inverse
 from rsvo_ros.core.lens import LensModel, as_lens, undistort_points
 from rsvo_ros.odometry.frame import FrameState, Observations
+from rsvo_ros.odometry.line_delay import (
+    LineDelayCalibrator,
+    LineDelayEstimate,
+    LineDelayOptions,
+)
 from rsvo_ros.odometry.pairwise import PairwiseChain
 from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.odometry.window import (
@@ -65,6 +71,13 @@ class PipelineOptions:
     # next frame follows the new time at the cadence, the stream did jump: it goes on from there.
     ahead_frames: float = 20.0
     ahead_min_s: float = 1.0
+    # line_delay auto (window backend, RS model): estimate the line delay from the video
+    # (:mod:`rsvo_ros.odometry.line_delay`) and use it; until the first estimate the given
+    # line delay is used, or, when it is 0, a readout of auto_initial_readout frame intervals
+    # (at 30 Hz; 0: start as a global shutter)
+    line_delay_auto: bool = False
+    line_delay_calibration: LineDelayOptions = field(default_factory=LineDelayOptions)
+    auto_initial_readout: float = 0.5
 
 
 @dataclass
@@ -122,12 +135,25 @@ class OdometryPipeline:
             raise ValueError(f"line_delay must be finite and >= 0, got {line_delay}")
         D = as_lens(D)
         changed = hasattr(self, "window") and not self._same_camera(K, D, float(line_delay))
-        self.K, self.D, self.line_delay = K, D, float(line_delay)
+        self.K, self.D, self.given_line_delay = K, D, float(line_delay)
+        if changed or not hasattr(self, "window"):
+            # the line delay the pipeline runs with: the given one, or line_delay auto's
+            self.line_delay = self.given_line_delay
+            self.calibrator: LineDelayCalibrator | None = None
+            self.line_delay_estimate = LineDelayEstimate("off")
+            self.line_delay_history: list[dict] = []
+            self._calibration_thread: threading.Thread | None = None
+            self._calibration_result: LineDelayEstimate | None = None
+            if self.options.line_delay_auto and self.options.model == "rs":
+                self.line_delay_estimate = LineDelayEstimate("collecting")
+                if self.line_delay <= 0:  # the image height is about twice the centre row
+                    self.line_delay = self.options.auto_initial_readout / 30.0 \
+                        / max(2.0 * float(K[1, 2]), 1.0)
         if changed:
             self.reset()  # the backends hold the camera: a new camera starts a new trajectory
 
     def _same_camera(self, K: np.ndarray, D: LensModel | None, line_delay: float) -> bool:
-        return D == self.D and np.array_equal(K, self.K) and line_delay == self.line_delay
+        return D == self.D and np.array_equal(K, self.K) and line_delay == self.given_line_delay
 
     def reset(self) -> None:
         """Forget everything: the next frame starts a new trajectory at the identity."""
@@ -148,6 +174,7 @@ class OdometryPipeline:
                                    o.seed)  # fmt: skip
         self.window = WindowOdometry(self.K, tau, o.window, o.model, o.ransac, o.lm,
                                      o.initial_scale, o.motion_prior, o.seed)  # fmt: skip
+        self.window.calibrator = self.calibrator  # kept across resets: the same camera
         self._window_was_initialising = True
         # T_odom_world: the published odometry is this times the window's estimate; each window
         # BA that moves the current frame updates it, so that the published pose stays
@@ -184,6 +211,7 @@ class OdometryPipeline:
         prev_stamp, self._last_stamp = self._last_stamp, stamp_ns
         if prev_stamp is not None:
             self._intervals = (self._intervals + [stamp_ns - prev_stamp])[-15:]
+        self._calibrate(stamp_ns, gray.shape[0])
         pair = self.tracker.track(gray)
         if self.options.backend == "window":
             interval = None if prev_stamp is None else (stamp_ns - prev_stamp) * 1e-9
@@ -205,6 +233,52 @@ class OdometryPipeline:
                       inlier_ratio=step.inlier_ratio, scale=step.scale, relative=rel,
                       pts_prev=pair.pts_prev, pts_curr=pair.pts_curr,
                       inliers=None if rel is None else rel.inliers)  # fmt: skip
+
+    # ------------------------------------------------------------------ line delay auto
+
+    def _calibrate(self, stamp_ns: int, height: int) -> None:
+        """line_delay auto: feed the calibrator, estimate when it is due (on a thread with
+        async mapping, else inline), and go on with a new estimate."""
+        o = self.options
+        if not o.line_delay_auto or o.model != "rs" or o.backend != "window":
+            return
+        if self.calibrator is None:
+            self.calibrator = LineDelayCalibrator(height, o.line_delay_calibration)
+            self.window.calibrator = self.calibrator
+        cal = self.calibrator
+        if self.line_delay_estimate.status == "converged":
+            return
+        cal.add_frame()
+        done, self._calibration_result = self._calibration_result, None
+        if done is not None:
+            self._take_estimate(done, stamp_ns)
+        running = self._calibration_thread is not None and self._calibration_thread.is_alive()
+        if running or not cal.due():
+            return
+        interval = (self.frame_interval_ns or 0.0) * 1e-9
+        if o.window.async_mapping:
+            def run():
+                self._calibration_result = cal.estimate(interval)
+
+            self._calibration_thread = threading.Thread(target=run, name="rsvo_line_delay",
+                                                        daemon=True)  # fmt: skip
+            self._calibration_thread.start()
+        else:
+            self._take_estimate(cal.estimate(interval), stamp_ns)
+
+    def _take_estimate(self, est: LineDelayEstimate, stamp_ns: int) -> None:
+        self.line_delay_estimate = est
+        self.line_delay_history.append({"stamp_ns": int(stamp_ns), **est.as_dict()})
+        if est.status in ("estimated", "converged") and est.line_delay_s is not None:
+            self.line_delay = float(est.line_delay_s)
+            self.window.set_line_delay(self.line_delay)
+            self.chain.line_delay = self.line_delay
+
+    def close(self) -> None:
+        """Stop the background threads (async mapping, line-delay estimation)."""
+        self.window.close()
+        if self._calibration_thread is not None:
+            self._calibration_thread.join(timeout=60.0)
 
     @property
     def frame_interval_ns(self) -> float | None:

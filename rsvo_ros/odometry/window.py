@@ -127,6 +127,7 @@ class WindowOdometry:
         self.initial_scale = initial_scale
         self.motion_prior = motion_prior
         self.seed = seed
+        self.calibrator = None  # a LineDelayCalibrator: the BA problems feed it (line_delay auto)
         self.reset()
 
     def reset(self) -> None:
@@ -470,6 +471,8 @@ class WindowOdometry:
                 self.map.add_keyframe(kf)
             self.map.slide()
             report = self.map.optimize()
+            if self.calibrator is not None and self.map.last_problem is not None:
+                self.calibrator.add_window(self.map.last_problem, self.row_ref)
             points = self.map.points()
             log = dict(self.keyframe_log)
             log.update({k.state.stamp_ns: k.state.copy() for k in self.map.keyframes})
@@ -477,6 +480,18 @@ class WindowOdometry:
             # without waiting for a BA
             self._points, self.keyframe_log = points, log
         return report
+
+    def set_line_delay(self, line_delay: float) -> None:
+        """Go on with another line delay (line_delay auto): every kept observation's row time
+        is recomputed from its row (the landmarks' anchors with them), the map points renewed."""
+        if self._mapper is not None:
+            self._mapper.wait_idle()
+        with self._lock:
+            self.line_delay = float(line_delay)
+            self.map.set_row_times(self.row_time)
+            if self._ref is not None:
+                self._ref.obs.s = self.row_time(self._ref.obs.rows)
+            self._points = self.map.points()
 
     def map_points(self) -> np.ndarray:
         """(M, 3) world points of the local map's landmarks (what tracking matches)."""

@@ -203,6 +203,7 @@ class RsvoNode(Node):
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
         opts.window.async_mapping = bool(self.p["async_mapping"])
+        opts.line_delay_auto = self.p["line_delay_mode"] == "auto"
         self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)
 
     def _bad(self, kind: str) -> None:
@@ -372,6 +373,7 @@ class RsvoNode(Node):
             "tracking_state": self._tracking,
             **{k: str(v) for k, v in self.stats.items()},
             "model": self.p["model"], "line_delay": str(self.p["line_delay"]),
+            **self._line_delay_diagnostics(),
         }  # fmt: skip
         st.values = [KeyValue(key=k, value=v) for k, v in vals.items()]
         arr = DiagnosticArray()
@@ -379,12 +381,26 @@ class RsvoNode(Node):
         arr.status = [st]
         self.pub_diag.publish(arr)
 
+    def _line_delay_diagnostics(self) -> dict[str, str]:
+        pipeline = self.pipeline
+        if pipeline is None:
+            return {}
+        e = pipeline.line_delay_estimate
+        out = {"line_delay_used": f"{pipeline.line_delay:.6g}", "line_delay_status": e.status}
+        if e.line_delay_s is not None:
+            out["line_delay_estimate"] = f"{e.line_delay_s:.6g}"
+            out["line_delay_std"] = f"{e.std_s:.3g}"
+            out["readout_fraction"] = f"{e.readout_fraction:.3f}"
+        elif e.reason:
+            out["line_delay_reason"] = e.reason
+        return out
+
     def destroy_node(self):
         self._stop.set()
         self._wake.set()
         self._worker.join(timeout=5.0)
         if self.pipeline is not None:
-            self.pipeline.window.close()
+            self.pipeline.close()
         return super().destroy_node()
 
 

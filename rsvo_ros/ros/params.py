@@ -23,6 +23,7 @@ from rsvo_ros.twoview.estimator import MODELS
 
 QOS_CHOICES = ("auto", "reliable", "best_effort")
 LOST_CHOICES = ("large_covariance", "none")
+LINE_DELAY_MODES = ("fixed", "auto")
 
 
 def _float(desc, lo, hi, step=0.0):
@@ -54,6 +55,10 @@ PARAMETERS = {
     "debug_image_topic": ("/rsvo/debug_image", _str("Output debug image (tracks, inliers).")),
     "line_delay": (0.0, _float("Seconds per image row (rolling-shutter line delay, tau); "
                                "0 for a global shutter.", 0.0, 1e-3)),
+    "line_delay_mode": ("fixed", _str(
+        "fixed: use line_delay; auto: estimate the line delay from the video (RS model, window "
+        "backend; line_delay is the start, or a nominal half-frame readout when it is 0) and "
+        "report it in the diagnostics.", LINE_DELAY_MODES)),
     "model": ("rs", _str("Relative pose model.", MODELS)),
     "backend": ("window", _str("Odometry backend: window (keyframes, a local map and the RS "
                                "window bundle adjustment) or pairwise (the paper's chain of "
@@ -121,6 +126,11 @@ def read_config(values: dict) -> NodeConfig:
     if p["image_qos_reliability"] not in QOS_CHOICES:
         raise ValueError(f"parameter image_qos_reliability must be one of {QOS_CHOICES}, "
                          f"got {p['image_qos_reliability']!r}")  # fmt: skip
+    if p["line_delay_mode"] not in LINE_DELAY_MODES:
+        raise ValueError(f"parameter line_delay_mode must be one of {LINE_DELAY_MODES}, "
+                         f"got {p['line_delay_mode']!r}")  # fmt: skip
+    if p["line_delay_mode"] == "auto" and (p["model"] != "rs" or p["backend"] != "window"):
+        raise ValueError("parameter line_delay_mode auto needs model rs and backend window")
     if p["lost_odometry"] not in LOST_CHOICES:
         raise ValueError(f"parameter lost_odometry must be one of {LOST_CHOICES}, "
                          f"got {p['lost_odometry']!r}")  # fmt: skip

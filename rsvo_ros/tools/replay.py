@@ -68,6 +68,7 @@ class ReplayConfig:
     overwrite: bool = False
     progress: bool = True
     options: PipelineOptions = field(default_factory=PipelineOptions)
+    max_frames: int | None = None  # stop after this many images (None: the whole bag)
 
 
 def _pose_line(stamp: int, T: np.ndarray) -> str:
@@ -140,12 +141,16 @@ def replay(cfg: ReplayConfig) -> dict:
         raise ReplayError(f"no camera info topic {cfg.camera_info_topic} in {cfg.bag} "
                           "(the intrinsics K are needed); give --camera-info-topic")
     line_delay = cfg.line_delay
-    if line_delay is None:
-        text = bagio.custom_data(cfg.bag).get(bagio.LINE_DELAY_KEY)
+    bag_text = bagio.custom_data(cfg.bag).get(bagio.LINE_DELAY_KEY)
+    auto = cfg.options.line_delay_auto and cfg.model == "rs"
+    if auto:
+        line_delay = 0.0  # estimated from the video; the bag's value is only reported
+    elif line_delay is None:
+        text = bag_text
         if text is None and cfg.model == "rs":
             reader.close()
             raise ReplayError(f"{cfg.bag} does not record {bagio.LINE_DELAY_KEY}; give "
-                              "--line-delay (seconds per image row)")
+                              "--line-delay (seconds per image row, or auto)")
         line_delay = float(text) if text is not None else 0.0
     if not np.isfinite(line_delay) or line_delay < 0:
         reader.close()
@@ -156,6 +161,8 @@ def replay(cfg: ReplayConfig) -> dict:
     if gt_topic:
         wanted.append(topics[gt_topic])
     n_images = topics[cfg.image_topic].msgcount
+    if cfg.max_frames is not None:
+        n_images = min(n_images, cfg.max_frames)
     options = cfg.options
     options.model = cfg.model
     options.tracker = TrackerOptions(max_features=cfg.max_features)
@@ -169,6 +176,7 @@ def replay(cfg: ReplayConfig) -> dict:
     trajectories: list[dict[int, np.ndarray]] = [est]
     time_resets = 0
     last_map_ns = None
+    images_read = 0
     pipeline: OdometryPipeline | None = None
     camera: CameraIntrinsics | None = None
     poses: deque = deque(maxlen=PATH_LENGTH)
@@ -225,6 +233,9 @@ def replay(cfg: ReplayConfig) -> dict:
                     gt_w[stamp_ns(msg.header)] = np.array([tw.angular.x, tw.angular.y,
                                                            tw.angular.z])  # fmt: skip
                     continue
+                images_read += 1
+                if cfg.max_frames is not None and images_read > cfg.max_frames:
+                    break
                 if bar is not None:
                     bar.update(1)
                 stamp = stamp_ns(msg.header)
@@ -281,7 +292,7 @@ def replay(cfg: ReplayConfig) -> dict:
                 bar.close()
     wall = time.perf_counter() - t_start
     if pipeline is not None:
-        pipeline.window.close()
+        pipeline.close()
     frames_in = sum(statuses.values()) + sum(skipped.values())
     trajectories = [t for t in trajectories if t]
     est = max(trajectories, key=len) if trajectories else {}
@@ -289,7 +300,8 @@ def replay(cfg: ReplayConfig) -> dict:
         "bag": str(cfg.bag), "model": cfg.model, "backend": options.backend,
         "motion_prior": options.motion_prior,
         "async_mapping": options.window.async_mapping,
-        "line_delay_s": line_delay,
+        # the line delay used at the end (line_delay auto: the estimate, see line_delay_auto)
+        "line_delay_s": pipeline.line_delay if pipeline is not None else line_delay,
         "image_topic": cfg.image_topic, "frames_in_bag": n_images,
         "frames_in": frames_in, "frames_posed": sum(len(t) for t in trajectories),
         "frames_estimated": statuses.get("posed", 0), "frames_held": statuses.get("held", 0),
@@ -307,6 +319,13 @@ def replay(cfg: ReplayConfig) -> dict:
         "time_resets": time_resets,
         "trajectories": [{"first_stamp_ns": min(t), "frames": len(t)} for t in trajectories],
     }  # fmt: skip
+    if auto and pipeline is not None:
+        summary["line_delay_auto"] = {
+            **pipeline.line_delay_estimate.as_dict(),
+            "curve": pipeline.line_delay_estimate.curve,
+            "history": pipeline.line_delay_history,
+            "bag_line_delay_s": None if bag_text is None else float(bag_text),
+        }
     if gt and len(est) >= 3:
         summary["accuracy"] = accuracy(gt, est)
         for t, row in zip(trajectories, summary["trajectories"], strict=True):
@@ -426,6 +445,24 @@ def plot_trajectory(path: Path, est: dict, gt: dict, frames: list, model: str) -
     plt.close(fig)
 
 
+def _describe_estimate(e: dict) -> str:
+    if e["line_delay_s"] is None:
+        return f"{e['status']} ({e['reason']})"
+    return (f"{e['line_delay_s'] * 1e6:.2f} +- {e['std_s'] * 1e6:.2f} us/row (readout "
+            f"{e['readout_fraction']:.3f} +- {e['std_fraction']:.3f} frame intervals; "
+            f"{e['status']}, {e['windows']} windows)")
+
+
+def _line_delay_arg(text: str):
+    if text == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"line delay must be seconds per row or auto, got {text!r}") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rsvo_replay",
                                 description="Run rsvo_ros's odometry pipeline over a rosbag2.")
@@ -435,8 +472,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-topic", default=bagio.IMAGE_TOPIC)
     p.add_argument("--camera-info-topic", default=bagio.CAMERA_INFO_TOPIC)
     p.add_argument("--ground-truth-topic", default=bagio.GROUND_TRUTH_TOPIC)
-    p.add_argument("--line-delay", type=float, default=None, metavar="S",
-                   help=f"seconds per image row (default: the bag's {bagio.LINE_DELAY_KEY})")
+    p.add_argument("--line-delay", type=_line_delay_arg, default=None, metavar="S|auto",
+                   help=f"seconds per image row (default: the bag's {bagio.LINE_DELAY_KEY}); "
+                        "auto: estimated from the video (RS model, window backend; the bag's "
+                        "value is then only reported)")
     p.add_argument("--max-features", type=int, default=500, help="tracked corners (500)")
     p.add_argument("--backend", choices=BACKENDS, default="window",
                    help="window: keyframes, a local map and the RS window bundle adjustment "
@@ -458,10 +497,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_features < 20:
         print("rsvo_replay: --max-features must be at least 20", file=sys.stderr)
         return EXIT_USAGE
-    options = PipelineOptions(motion_prior=not args.no_motion_prior, backend=args.backend)
+    auto = args.line_delay == "auto"
+    if auto and (args.model != "rs" or args.backend != "window"):
+        print("rsvo_replay: --line-delay auto needs --model rs and --backend window",
+              file=sys.stderr)
+        return EXIT_USAGE
+    options = PipelineOptions(motion_prior=not args.no_motion_prior, backend=args.backend,
+                              line_delay_auto=auto)
     options.window.async_mapping = args.async_mapping
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
-                       args.camera_info_topic, args.ground_truth_topic, args.line_delay,
+                       args.camera_info_topic, args.ground_truth_topic,
+                       None if auto else args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
                        options)  # fmt: skip
     try:
@@ -479,6 +525,8 @@ def main(argv: list[str] | None = None) -> int:
     if acc:
         line += f"; ATE {acc['ate_m']['rmse']:.3f} m RMSE after Sim(3)"
     print(line)
+    if "line_delay_auto" in s:
+        print(f"rsvo_replay: line delay auto: {_describe_estimate(s['line_delay_auto'])}")
     print(f"rsvo_replay: wrote {args.output}/trajectory.tum, odometry/, summary.json, "
           "trajectory.png")
     return EXIT_OK

@@ -167,7 +167,7 @@ def _walk_run(async_mapping: bool, frames: int = 60, seed: int = 0):
         prev = r.T_world_cam
         if async_mapping:
             time.sleep(0.03)  # a camera's frame interval: mapping finishes in the background
-    pipe.window.close()
+    pipe.close()
     return accuracy(gt, est)["ate_m"]["rmse"], np.array(steps), mapped, pipe
 
 

@@ -1,0 +1,89 @@
+"""rsvo_calibrate: the line delay of a rolling-shutter camera from a bag of its video.
+
+Runs the odometry over the bag with ``line_delay: auto`` (RS model, window backend) and prints
+the estimate with its uncertainty, the readout time (line delay x image height) and the readout
+as a fraction of the frame interval; writes a ROS 2 parameter file the node loads with
+``rsvo_node --ros-args --params-file FILE``. The camera must move (rotate) during the bag.
+Exit codes: 0 estimated, 1 the bag cannot be used or the line delay is not observable in it,
+2 bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+from rsvo_ros.odometry.pipeline import PipelineOptions
+from rsvo_ros.ros import bagio
+from rsvo_ros.tools.replay import ReplayConfig, ReplayError, replay
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+
+
+def params_yaml(estimate: dict, bag: Path) -> str:
+    """The node's parameter file for an estimate (``line_delay_mode: fixed``)."""
+    return (f"# rsvo_calibrate {bag}: {estimate['status']}, {estimate['windows']} windows, "
+            f"{estimate['frames']} frames\n"
+            f"# line delay {estimate['line_delay_s']:.6g} +- {estimate['std_s']:.3g} s/row; "
+            f"readout {estimate['readout_s'] * 1e3:.3f} ms = "
+            f"{estimate['readout_fraction']:.3f} +- {estimate['std_fraction']:.3f} frame "
+            "intervals\n"
+            "rsvo_node:\n"
+            "  ros__parameters:\n"
+            f"    line_delay: {estimate['line_delay_s']:.6g}\n"
+            "    line_delay_mode: fixed\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rsvo_calibrate", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap)")
+    p.add_argument("--output", "-o", type=Path, default=Path("rsvo_line_delay.yaml"),
+                   help="parameter file to write (default rsvo_line_delay.yaml)")
+    p.add_argument("--image-topic", default=bagio.IMAGE_TOPIC)
+    p.add_argument("--camera-info-topic", default=bagio.CAMERA_INFO_TOPIC)
+    p.add_argument("--max-frames", type=int, default=None,
+                   help="use only the first N images (default: all)")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.max_frames is not None and args.max_frames < 10:
+        print("rsvo_calibrate: --max-frames must be at least 10", file=sys.stderr)
+        return EXIT_USAGE
+    with tempfile.TemporaryDirectory(prefix="rsvo_calibrate_") as tmp:
+        cfg = ReplayConfig(args.bag, Path(tmp) / "replay", "rs", args.image_topic,
+                           args.camera_info_topic, progress=not args.no_progress,
+                           options=PipelineOptions(line_delay_auto=True),
+                           max_frames=args.max_frames)  # fmt: skip
+        try:
+            summary = replay(cfg)
+        except ReplayError as exc:
+            print(f"rsvo_calibrate: {exc}", file=sys.stderr)
+            return EXIT_FAILED
+        except ValueError as exc:
+            print(f"rsvo_calibrate: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+    e = summary["line_delay_auto"]
+    if e["line_delay_s"] is None:
+        print(f"rsvo_calibrate: no estimate: {e['status']} ({e['reason']}); the camera must "
+              "move and rotate during the bag", file=sys.stderr)
+        return EXIT_FAILED
+    print(f"rsvo_calibrate: line delay {e['line_delay_s'] * 1e6:.2f} +- {e['std_s'] * 1e6:.2f} "
+          f"us/row, readout {e['readout_s'] * 1e3:.2f} ms ({e['readout_fraction']:.3f} +- "
+          f"{e['std_fraction']:.3f} frame intervals); {e['status']} from {e['windows']} "
+          f"windows of {summary['frames_in']} frames")
+    if e["bag_line_delay_s"] is not None:
+        print(f"rsvo_calibrate: the bag records {e['bag_line_delay_s'] * 1e6:.2f} us/row")
+    args.output.write_text(params_yaml(e, args.bag))
+    print(f"rsvo_calibrate: wrote {args.output} (rsvo_node --ros-args --params-file "
+          f"{args.output})")
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())
