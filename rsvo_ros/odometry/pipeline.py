@@ -145,7 +145,8 @@ class OdometryPipeline:
             self._calibration_thread: threading.Thread | None = None
             self._calibration_result: LineDelayEstimate | None = None
             if self.options.line_delay_auto and self.options.model == "rs":
-                self.line_delay_estimate = LineDelayEstimate("collecting")
+                self.line_delay_estimate = LineDelayEstimate(
+                    "collecting", reason="no keyframe windows yet")
                 if self.line_delay <= 0:  # the image height is about twice the centre row
                     self.line_delay = self.options.auto_initial_readout / 30.0 \
                         / max(2.0 * float(K[1, 2]), 1.0)

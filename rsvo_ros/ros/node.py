@@ -393,6 +393,8 @@ class RsvoNode(Node):
             out["readout_fraction"] = f"{e.readout_fraction:.3f}"
         elif e.reason:
             out["line_delay_reason"] = e.reason
+        if pipeline.calibrator is not None:
+            out["line_delay_windows"] = str(len(pipeline.calibrator.windows))
         return out
 
     def destroy_node(self):

@@ -205,3 +205,17 @@ def test_lost_tracking_is_visible_to_consumers(ros_context, mode):
             assert np.allclose(np.diag(np.reshape(h.odom[-1].pose.covariance, (6, 6))), 1e6)
     finally:
         h.close()
+
+
+def test_line_delay_auto_is_reported_in_the_diagnostics(ros_context):
+    h = Harness(ros_context, [Parameter("line_delay_mode", value="auto")])
+    try:
+        info, msgs = _frames(6)
+        h.feed(info, msgs)
+        assert len(h.odom) == 6
+        diag = h.node._line_delay_diagnostics()
+        assert diag["line_delay_status"] == "collecting" and "line_delay_windows" in diag
+        assert float(diag["line_delay_used"]) > 0  # a nominal readout until the first estimate
+        assert h.node.pipeline.options.line_delay_auto
+    finally:
+        h.close()

@@ -204,3 +204,26 @@ def test_console_script(vehicle_bag, tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "rsvo_replay" in proc.stderr  # the progress bar
+
+
+def test_rsvo_calibrate_writes_a_parameter_file_the_node_can_load(tmp_path, capsys):
+    import yaml
+
+    from rsvo_ros.tools.calibrate import main as calibrate_main
+
+    bag = tmp_path / "walk"
+    write_bag(bag, SynthConfig(frames=120, motion="walk", severity=1.0, seed=3,
+                               line_delay=5e-5), progress=False)
+    out = tmp_path / "calib.yaml"
+    assert calibrate_main([str(bag), "--output", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "us/row" in printed and "frame intervals" in printed and "records 50.00" in printed
+    params = yaml.safe_load(out.read_text())["rsvo_node"]["ros__parameters"]
+    assert params["line_delay_mode"] == "fixed"
+    assert 0.7 * 5e-5 < params["line_delay"] < 1.3 * 5e-5
+    # too short to see anything: a clear failure, no file
+    short = tmp_path / "short"
+    write_bag(short, SynthConfig(frames=12, motion="walk", seed=3), progress=False)
+    assert calibrate_main([str(short), "--output", str(tmp_path / "no.yaml"),
+                           "--no-progress"]) == 1
+    assert "no estimate" in capsys.readouterr().err and not (tmp_path / "no.yaml").exists()
