@@ -7,6 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import ground_truth_pose
 
 from rsvo_ros.odometry.line_delay import LineDelayCalibrator, LineDelayOptions, _parabola_min
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
@@ -26,9 +27,7 @@ def _run(line_delay_true: float, auto: bool, seed: int = 0):
     for f in renderer:
         s = round(f.stamp * 1e9)
         est[s] = pipe.process(s, f.image).T_world_cam
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = f.R_world_cam, f.p_world_cam
-        gt[s] = T
+        gt[s] = ground_truth_pose(f)
     pipe.close()
     return pipe, accuracy(gt, est)["ate_m"]["rmse"]
 

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import ground_truth_pose
 
 from rsvo_ros.core.geometry import so3_exp
 from rsvo_ros.odometry.frame import FrameState, KeyFrame, Observations
@@ -114,9 +115,7 @@ def test_window_pipeline_on_a_rendered_walk_beats_the_pairwise_chain():
         for f in frames:
             s = round(f.stamp * 1e9)
             r = pipe.process(s, f.image)
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = f.R_world_cam, f.p_world_cam
-            gt[s] = T
+            gt[s] = ground_truth_pose(f)
             assert r.status in ("first", "posed", "held") and np.isfinite(r.T_world_cam).all()
             held += r.status == "held"
             est[s] = r.T_world_cam
@@ -156,9 +155,7 @@ def _walk_run(async_mapping: bool, frames: int = 60, seed: int = 0):
     for f in renderer:
         s = round(f.stamp * 1e9)
         r = pipe.process(s, f.image)
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = f.R_world_cam, f.p_world_cam
-        gt[s] = T
+        gt[s] = ground_truth_pose(f)
         assert np.isfinite(r.T_world_cam).all()
         est[s] = r.T_world_cam
         mapped += r.mapping_ms > 0

@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import ground_truth_pose
 from rosbags.rosbag2 import Reader
 
 from rsvo_ros.odometry.pipeline import OdometryPipeline
@@ -54,9 +55,7 @@ def test_ignoring_the_lens_is_measurably_worse():
     frames = list(renderer)
     gt = {}
     for f in frames:
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = f.R_world_cam, f.p_world_cam
-        gt[round(f.stamp * 1e9)] = T
+        gt[round(f.stamp * 1e9)] = ground_truth_pose(f)
     ate = {}
     for name, lens in (("lens", cfg.lens_model), ("ignored", None)):
         pipeline = OdometryPipeline(renderer.K, lens, cfg.tau)
