@@ -31,7 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rsvo_play", description="Publish a rosbag2's topics live.")
     p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap)")
     p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1)")
-    p.add_argument("--loop", action="store_true", help="start again at the end")
+    p.add_argument("--loop", action="store_true", help="start again at the end, forever")
+    p.add_argument("--loops", type=int, default=1, metavar="N",
+                   help="play the bag N times (default 1; the stamps repeat, as with "
+                        "ros2 bag play -l)")
     p.add_argument("--topics", nargs="+", default=None, help="only these topics")
     p.add_argument("--qos", choices=("reliable", "best_effort"), default="reliable",
                    help="publisher reliability (default reliable)")
@@ -46,6 +49,9 @@ def main(argv: list[str] | None = None) -> int:
     args, ros_args = build_parser().parse_known_args(argv)
     if not (args.rate > 0):
         print("rsvo_play: --rate must be > 0", file=sys.stderr)
+        return EXIT_USAGE
+    if args.loops < 1:
+        print("rsvo_play: --loops must be >= 1", file=sys.stderr)
         return EXIT_USAGE
     from rosbags.rosbag2 import Reader
 
@@ -74,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(0.05)
         time.sleep(args.start_delay)
         count = 0
+        passes = 0
         while True:
             t_bag0 = None
             t_wall0 = time.monotonic()
@@ -86,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
                     time.sleep(delay)
                 pubs[conn.id].publish(bytes(raw))
                 count += 1
-            if not args.loop:
+            passes += 1
+            if not args.loop and passes >= args.loops:
                 break
         # reliable delivery needs the writer alive until the readers have acknowledged: the
         # last image was lost now and then when the player exited right after publishing it

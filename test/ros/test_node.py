@@ -186,6 +186,25 @@ def test_tf_map_points_and_keyframes_for_a_separate_process(graph, small_bag):
     assert ate <= 1.05 * ref["rmse"] + 1e-3, (ate, ref["rmse"])
 
 
+def test_a_bag_looped_three_times_gives_three_trajectories(graph, small_bag):
+    """rsvo_play --loops 3 (the stamps repeat, as with ros2 bag play -l): time jumps back twice,
+    the node resets each time, logs it, counts it, and poses >= 95 % of every pass."""
+    data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
+                      ["--rate", "0.25", "--loops", "3"], 3 * FRAMES)
+    passes, prev = [[]], None
+    for o in data["odom"]:
+        if prev is not None and o["stamp_ns"] < prev:
+            passes.append([])
+        passes[-1].append(o)
+        prev = o["stamp_ns"]
+    assert len(passes) == 3, [len(p) for p in passes]
+    assert all(len(p) >= 0.95 * FRAMES for p in passes), [len(p) for p in passes]
+    for p in passes[1:]:  # each pass starts over at the origin
+        assert np.allclose(p[0]["pose"][:3], 0.0)
+    assert int(data["diagnostics"][-1]["time_resets"]) == 2
+    assert graph.log("node").count("time jumped back") == 2
+
+
 def _pose_matrix(p):
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(p[3:]).as_matrix()
