@@ -128,15 +128,18 @@ class CorridorScene:
         (``T_world_camera`` of that row). ``rays``: each pixel's normalized ``(x, y)`` (a lens:
         :func:`pixel_rays`); None: the pinhole ``K``."""
         f32 = np.float32
-        if rays is None:
-            Kinv = np.linalg.inv(K)
-            a = (Kinv[0, 0] * np.arange(width) + Kinv[0, 2])[None, :]  # x of a column
-            b = (Kinv[1, 1] * np.arange(height) + Kinv[1, 2])[:, None]  # y of a row
-        else:
-            a, b = rays
         # world ray of pixel (r, c): R_r (x, y, 1) = x R_r[:, 0] + y R_r[:, 1] + R_r[:, 2]
-        d = [(a * R_rows[:, i, 0][:, None] + b * R_rows[:, i, 1][:, None]
-              + R_rows[:, i, 2][:, None]).astype(f32) for i in range(3)]  # (H, W) each
+        if rays is None:  # pinhole: x depends on the column only, y on the row only
+            Kinv = np.linalg.inv(K)
+            a = (Kinv[0, 0] * np.arange(width) + Kinv[0, 2]).astype(f32)[None, :]
+            b = Kinv[1, 1] * np.arange(height) + Kinv[1, 2]
+            X = R_rows[:, :, 0].astype(f32)
+            W = (b[:, None] * R_rows[:, :, 1] + R_rows[:, :, 2]).astype(f32)
+            d = [a * X[:, i:i + 1] + W[:, i:i + 1] for i in range(3)]  # (H, W) each
+        else:
+            x, y = rays
+            d = [(x * R_rows[:, i, 0][:, None] + y * R_rows[:, i, 1][:, None]
+                  + R_rows[:, i, 2][:, None]).astype(f32) for i in range(3)]
         o = [p_rows[:, i:i + 1].astype(f32) for i in range(3)]  # (H, 1) each
         best = np.full((height, width), np.inf, f32)
         surf = np.full((height, width), -1, np.int8)
