@@ -271,9 +271,17 @@ class OdometryPipeline:
         self.line_delay_estimate = est
         self.line_delay_history.append({"stamp_ns": int(stamp_ns), **est.as_dict()})
         if est.status in ("estimated", "converged") and est.line_delay_s is not None:
-            self.line_delay = float(est.line_delay_s)
-            self.window.set_line_delay(self.line_delay)
-            self.chain.line_delay = self.line_delay
+            self._set_line_delay(float(est.line_delay_s))
+        elif est.status == "not observable" and not self.line_delay_history[:-1]:
+            # nothing measured yet: back to the given value (0: a global shutter) while it
+            # goes on collecting
+            self._set_line_delay(self.given_line_delay)
+
+    def _set_line_delay(self, line_delay: float) -> None:
+        if line_delay != self.line_delay:
+            self.line_delay = line_delay
+            self.window.set_line_delay(line_delay)
+            self.chain.line_delay = line_delay
 
     def close(self) -> None:
         """Stop the background threads (async mapping, line-delay estimation)."""

@@ -6,8 +6,9 @@ Publishes rendered rolling-shutter frames (and camera info) stamped with the wal
 given rate, subscribes to ``/rsvo/odom`` and ``/diagnostics`` and reports, per run: frames sent,
 odometry received (the node drops frames it cannot keep up with and counts them), the latency
 from the image stamp to the odometry's arrival (median, p95), the node's own stage times from its
-diagnostics (tracking per frame, mapping per keyframe, medians) and its CPU use (% of one core,
-from /proc; the node is found by name or ``--node-pid``). Start the node first, e.g.
+diagnostics (tracking per frame, mapping per keyframe, publishing per frame, medians) and its
+CPU use (% of one core, from /proc; the node is found by name or ``--node-pid``). Start the
+node first, e.g.
 ``rsvo_node --ros-args -p line_delay:=5e-5``.
 """
 
@@ -107,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
                else 100.0 * (cpu1 - cpu0) / (t_sent - t0),
                "tracking_ms_median": diag.get("tracking_time_ms_median"),
                "mapping_ms_median": diag.get("mapping_time_ms_median"),
+               "publishing_ms_median": diag.get("publishing_time_ms_median"),
                "processing_ms_median": diag.get("processing_time_ms_median")}
         results.append(row)
         print(json.dumps(row))

@@ -85,6 +85,7 @@ class RsvoNode(Node):
         self._proc_ms: deque = deque(maxlen=100)
         self._track_ms: deque = deque(maxlen=100)  # per frame, without the window BA
         self._map_ms: deque = deque(maxlen=100)  # per keyframe: the window BA
+        self._publish_ms: deque = deque(maxlen=100)  # messages filled and published
         self._last_inlier_ratio = 0.0
         self._state = "waiting for camera info"
         self._tracking = "initialising"
@@ -270,7 +271,9 @@ class RsvoNode(Node):
                        "lost": f"lost: {res.reason}"}[res.tracking]  # fmt: skip
         self._tracking = res.tracking
         self._last_inlier_ratio = res.inlier_ratio
+        t_pub = time.perf_counter()
         self._publish(msg, res, gray)
+        self._publish_ms.append((time.perf_counter() - t_pub) * 1e3)
 
     def _publish_static_tf(self) -> None:
         tf = TransformStamped()
@@ -369,6 +372,8 @@ class RsvoNode(Node):
             else "n/a",
             "mapping_time_ms_median": f"{np.median(self._map_ms):.1f}" if self._map_ms
             else "n/a",
+            "publishing_time_ms_median": f"{np.median(self._publish_ms):.1f}"
+            if self._publish_ms else "n/a",
             "inlier_ratio": f"{self._last_inlier_ratio:.3f}",
             "tracking_state": self._tracking,
             **{k: str(v) for k, v in self.stats.items()},

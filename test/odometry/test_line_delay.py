@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 from conftest import ground_truth_pose
 
-from rsvo_ros.odometry.line_delay import LineDelayCalibrator, LineDelayOptions, _parabola_min
+from rsvo_ros.odometry.line_delay import (
+    LineDelayCalibrator,
+    LineDelayEstimate,
+    LineDelayOptions,
+    _parabola_min,
+)
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import accuracy
@@ -82,3 +87,13 @@ def test_without_rotation_it_says_so(auto_50):
     assert e.status == "not observable" and "rotation" in e.reason and e.line_delay_s is None
     few = LineDelayCalibrator(360)
     assert few.estimate(1 / 30).status == "collecting"
+
+
+def test_not_observable_at_first_goes_back_to_the_given_value():
+    K = np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]])
+    pipe = OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True))
+    assert pipe.line_delay > 0  # the nominal half-frame readout while it collects
+    pipe._take_estimate(LineDelayEstimate("not observable", reason="too little rotation"), 1)
+    assert pipe.line_delay == 0.0 and pipe.window.line_delay == 0.0
+    assert pipe.line_delay_history[-1]["status"] == "not observable"
+    pipe.close()
