@@ -142,16 +142,23 @@ def replay(cfg: ReplayConfig) -> dict:
                           "(the intrinsics K are needed); give --camera-info-topic")
     line_delay = cfg.line_delay
     bag_text = bagio.custom_data(cfg.bag).get(bagio.LINE_DELAY_KEY)
+    try:
+        bag_line_delay = None if bag_text is None else float(bag_text)
+    except ValueError:
+        bag_line_delay = None  # reported as unknown; an error below where it is needed
     auto = cfg.options.line_delay_auto and cfg.model == "rs"
     if auto:
         line_delay = 0.0  # estimated from the video; the bag's value is only reported
     elif line_delay is None:
-        text = bag_text
-        if text is None and cfg.model == "rs":
+        if bag_text is not None and bag_line_delay is None:
+            reader.close()
+            raise ReplayError(f"{cfg.bag} records {bagio.LINE_DELAY_KEY} = {bag_text!r}, not a "
+                              "number; give --line-delay (seconds per image row, or auto)")
+        if bag_text is None and cfg.model == "rs":
             reader.close()
             raise ReplayError(f"{cfg.bag} does not record {bagio.LINE_DELAY_KEY}; give "
                               "--line-delay (seconds per image row, or auto)")
-        line_delay = float(text) if text is not None else 0.0
+        line_delay = bag_line_delay if bag_line_delay is not None else 0.0
     if not np.isfinite(line_delay) or line_delay < 0:
         reader.close()
         raise ReplayError(f"line delay must be finite and >= 0, got {line_delay}")
@@ -324,7 +331,7 @@ def replay(cfg: ReplayConfig) -> dict:
             **pipeline.line_delay_estimate.as_dict(),
             "curve": pipeline.line_delay_estimate.curve,
             "history": pipeline.line_delay_history,
-            "bag_line_delay_s": None if bag_text is None else float(bag_text),
+            "bag_line_delay_s": bag_line_delay,
         }
     if gt and len(est) >= 3:
         summary["accuracy"] = accuracy(gt, est)
@@ -477,6 +484,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "auto: estimated from the video (RS model, window backend; the bag's "
                         "value is then only reported)")
     p.add_argument("--max-features", type=int, default=500, help="tracked corners (500)")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="stop after the first N images (default: the whole bag)")
     p.add_argument("--backend", choices=BACKENDS, default="window",
                    help="window: keyframes, a local map and the RS window bundle adjustment "
                         "(default); pairwise: the paper's chain of frame pairs")
@@ -497,6 +506,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_features < 20:
         print("rsvo_replay: --max-features must be at least 20", file=sys.stderr)
         return EXIT_USAGE
+    if args.max_frames is not None and args.max_frames < 1:
+        print("rsvo_replay: --max-frames must be at least 1", file=sys.stderr)
+        return EXIT_USAGE
     auto = args.line_delay == "auto"
     if auto and (args.model != "rs" or args.backend != "window"):
         print("rsvo_replay: --line-delay auto needs --model rs and --backend window",
@@ -509,7 +521,7 @@ def main(argv: list[str] | None = None) -> int:
                        args.camera_info_topic, args.ground_truth_topic,
                        None if auto else args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
-                       options)  # fmt: skip
+                       options, args.max_frames)  # fmt: skip
     try:
         s = replay(cfg)
     except (ValueError, FileExistsError) as exc:

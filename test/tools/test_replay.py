@@ -170,6 +170,7 @@ def test_looped_bag_gives_two_trajectories(tmp_path):
     ("camera_info", "camera info topic"),
     ("line_delay", "--line-delay"),
     ("truncated", "cannot read bag"),
+    ("line_delay_text", "not a number"),
 ])
 def test_unusable_bags_fail_with_one_line(vehicle_bag, tmp_path, capsys, case, message):
     args = [str(vehicle_bag), "--output", str(tmp_path / "o"), "--no-progress"]
@@ -184,6 +185,14 @@ def test_unusable_bags_fail_with_one_line(vehicle_bag, tmp_path, capsys, case, m
         cfg = SynthConfig(frames=2, width=64, height=36)
         write_bag(bag, cfg, "sqlite3", progress=False)
         meta = (bag / "metadata.yaml").read_text().replace("rsvo.line_delay", "other.key")
+        (bag / "metadata.yaml").write_text(meta)
+        args[0] = str(bag)
+    elif case == "line_delay_text":
+        bag = tmp_path / "badld"
+        write_bag(bag, SynthConfig(frames=2, width=64, height=36), "sqlite3", progress=False)
+        meta = (bag / "metadata.yaml").read_text()
+        meta = meta.replace(next(ln for ln in meta.splitlines() if "rsvo.line_delay" in ln),
+                            "    rsvo.line_delay: fast")
         (bag / "metadata.yaml").write_text(meta)
         args[0] = str(bag)
     elif case == "truncated":
@@ -227,3 +236,14 @@ def test_rsvo_calibrate_writes_a_parameter_file_the_node_can_load(tmp_path, caps
     assert calibrate_main([str(short), "--output", str(tmp_path / "no.yaml"),
                            "--no-progress"]) == 1
     assert "no estimate" in capsys.readouterr().err and not (tmp_path / "no.yaml").exists()
+
+
+def test_max_frames_stops_early_and_is_checked(vehicle_bag, tmp_path, capsys):
+    out = tmp_path / "five"
+    assert replay_main([str(vehicle_bag), "--output", str(out), "--max-frames", "5",
+                        "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames_in"] == 5 and s["frames_posed"] == 5
+    assert replay_main([str(vehicle_bag), "--output", str(tmp_path / "zero"), "--max-frames",
+                        "0", "--no-progress"]) == 2
+    assert "--max-frames" in capsys.readouterr().err
