@@ -222,6 +222,22 @@ def track_frame(R, p, w, v, X, x_obs, s, focal, robust, prior_mu, prior_p2, iter
 # --------------------------------------------------------------------------- the window
 
 
+@nb.njit(**JIT, inline="always")
+def _observation(o, R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
+                 JA, Jrho, Jf, JX):  # fmt: skip
+    """Window observation ``o``: its landmark from the anchor keyframe's row camera (Jacobians
+    into ``JA``, ``Jrho``), seen by its keyframe at its own row time (``Jf``, ``JX``). Returns
+    the residual ``(ex, ey)`` and whether the point projects."""
+    k, j = obs_kf[o], obs_lm[o]
+    a = lm_anchor[j]
+    X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
+                  (v[a, 0], v[a, 1], v[a, 2]), lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j], JA,
+                  Jrho)  # fmt: skip
+    return _observe(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]), (w[k, 0], w[k, 1], w[k, 2]),
+                    (v[k, 0], v[k, 1], v[k, 2]), obs_s[o], X, (obs_x[o, 0], obs_x[o, 1]), focal,
+                    Jf, JX)  # fmt: skip
+
+
 @nb.njit(**JIT)
 def _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
                  robust, mu, p2, res):  # fmt: skip
@@ -233,14 +249,8 @@ def _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s
     c = 0.0
     r2 = robust * robust
     for o in range(obs_kf.shape[0]):
-        k, j = obs_kf[o], obs_lm[o]
-        a = lm_anchor[j]
-        X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
-                      (v[a, 0], v[a, 1], v[a, 2]), lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j],
-                      JA, Jrho)  # fmt: skip
-        ex, ey, ok = _observe(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]),
-                              (w[k, 0], w[k, 1], w[k, 2]), (v[k, 0], v[k, 1], v[k, 2]),
-                              obs_s[o], X, (obs_x[o, 0], obs_x[o, 1]), focal, Jf, JX)
+        ex, ey, ok = _observation(o, R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x,
+                                  lm_s, rho, focal, JA, Jrho, Jf, JX)  # fmt: skip
         if not ok:
             ex = ey = 10.0 * robust
         res[o, 0], res[o, 1] = ex, ey
@@ -274,12 +284,8 @@ def _window_system(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
     for o in range(obs_kf.shape[0]):
         k, j = obs_kf[o], obs_lm[o]
         a = lm_anchor[j]
-        X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
-                      (v[a, 0], v[a, 1], v[a, 2]), lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j],
-                      JA, Jrho)  # fmt: skip
-        ex, ey, ok = _observe(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]),
-                              (w[k, 0], w[k, 1], w[k, 2]), (v[k, 0], v[k, 1], v[k, 2]),
-                              obs_s[o], X, (obs_x[o, 0], obs_x[o, 1]), focal, Jf, JX)
+        ex, ey, ok = _observation(o, R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x,
+                                  lm_s, rho, focal, JA, Jrho, Jf, JX)  # fmt: skip
         if not ok:
             continue
         wt = 1.0 / (1.0 + (ex * ex + ey * ey) / r2)

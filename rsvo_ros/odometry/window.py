@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rsvo_ros.core.geometry import pose_at_row, so3_exp, so3_log
+from rsvo_ros.core.geometry import pose_at_row, pose_inverse, so3_exp, so3_log
 from rsvo_ros.odometry import rs_projection
 from rsvo_ros.odometry.frame import (
     FrameState,
@@ -144,7 +144,7 @@ class WindowOdometry:
         if getattr(self, "_mapper", None) is not None:
             self._mapper.close()
         self._mapper = Mapper(self) if self.options.async_mapping else None
-        self._last_kf: KeyFrame | None = None  # the newest keyframe (maybe still being mapped)
+        self._pending_kf: KeyFrame | None = None  # submitted to the mapper, not yet picked up
         self._picked: list[tuple[tuple[FrameState, FrameState], BAReport]] = []
         self._lock = threading.Lock()  # one mapping at a time; tracking reads atomic snapshots
         self.keyframe_log: dict[int, FrameState] = {}  # stamp -> refined keyframe state
@@ -242,7 +242,7 @@ class WindowOdometry:
             return self._start(stamp_ns, obs)
         if self._ref is not None:
             return self._initialise(stamp_ns, obs)
-        self._picked: list[tuple[tuple[FrameState, FrameState], BAReport]] = []
+        self._picked = []
         self._pick_up_mapping()
         result = self._track_map(stamp_ns, obs)
         if result is None:
@@ -252,6 +252,13 @@ class WindowOdometry:
         if result.ba is None and self._picked:
             result.ba = self._picked[-1][1]
         return result
+
+    def _newest_keyframe(self) -> KeyFrame | None:
+        """The keyframe the next keyframe decision compares with: the one being mapped in the
+        background, else the map's newest."""
+        if self._pending_kf is not None:
+            return self._pending_kf
+        return self.map.keyframes[-1] if self.map.keyframes else None
 
     def _pick_up_mapping(self) -> None:
         """Async mapping: a keyframe whose window BA finished since the last frame. The frames
@@ -263,10 +270,10 @@ class WindowOdometry:
         if done is None:
             return
         kf, before, report = done
+        self._pending_kf = None
         after = kf.state.copy() if kf in self.map.keyframes else before.copy()
-        self._last_kf = self.map.keyframes[-1] if self.map.keyframes else None
         # world-frame correction of the map around the keyframe (row 0, as the pipeline's)
-        D = self.row0_pose(after) @ np.linalg.inv(self.row0_pose(before))
+        D = self.row0_pose(after) @ pose_inverse(self.row0_pose(before))
         for st in (self._last, self._before):
             if st is not None:
                 st.R, st.p = D[:3, :3] @ st.R, D[:3, :3] @ st.p + D[:3, 3]
@@ -326,7 +333,6 @@ class WindowOdometry:
         self._origin = None
         self._hints.clear()
         self._before, self._last = ref.state.copy(), kf.state.copy()
-        self._last_kf = self.map.keyframes[-1]
         self._tracked_at_kf = len(self.map.landmarks)
         # (rebased: the world itself moved, and nothing was published in it yet)
         moved = [(before, kf.state.copy())] if hinted else []
@@ -346,7 +352,7 @@ class WindowOdometry:
     def _track_map(self, stamp_ns: int, obs: Observations) -> WindowResult | None:
         o = self.options
         ids, X = self._points  # an atomic snapshot: mapping replaces it when it is done
-        last_kf = self._last_kf
+        last_kf = self._newest_keyframe()
         _, ia, ib = np.intersect1d(ids, obs.ids, return_indices=True)
         if len(ia) < o.min_landmarks or last_kf is None:
             return None
@@ -376,14 +382,13 @@ class WindowOdometry:
             kf.before = self._last.copy()
             kf.rejected.update(int(t) for t in obs.ids[ib][~inl])
             result.keyframe = True
-            self._last_kf = kf
             self._tracked_at_kf = int(inl.sum())
             if self._mapper is not None:
+                self._pending_kf = kf
                 self._mapper.submit(kf, state.copy())
             else:
                 before = state.copy()
                 result.ba = self.map_keyframe(kf)
-                self._last_kf = self.map.keyframes[-1] if self.map.keyframes else None
                 refined = kf.state if kf in self.map.keyframes else state
                 state = refined.copy()
                 result.state = state.copy()
@@ -422,7 +427,6 @@ class WindowOdometry:
                     report = self.map_keyframe(kf)
                     state = kf.state.copy() if kf in self.map.keyframes else state
                     self._before, self._last = self._last, state.copy()
-                    self._last_kf = self.map.keyframes[-1] if self.map.keyframes else None
                     self._lost = 0
                     self._tracked_at_kf = len(self.map.landmarks)
                     return WindowResult("posed", "recovered with the pair estimator", state,
@@ -434,7 +438,7 @@ class WindowOdometry:
             self._origin = held
             self.map = LocalMap(self.focal, self.options.map)
             self._points = (np.zeros(0, np.int64), np.zeros((0, 3)))
-            self._last = self._before = self._last_kf = None
+            self._last = self._before = None
             self._lost = 0
             started = self._start(stamp_ns, obs)
             started.reason = "lost: too few map points and no pair pose; a new map starts"

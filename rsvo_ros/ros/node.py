@@ -29,6 +29,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_srvs.srv import Trigger
 
+from rsvo_ros.core.geometry import pose_inverse
 from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions, warm_up
 from rsvo_ros.odometry.tracker import TrackerOptions
 from rsvo_ros.ros.convert import (
@@ -67,6 +68,7 @@ class RsvoNode(Node):
             self.declare_parameter(name, default, desc)
         self.p = read_config({name: self.get_parameter(name).value for name in PARAMETERS})
         self.T_base_cam = self.p.T_base_cam
+        self.T_cam_base = pose_inverse(self.T_base_cam)
         # before anything is advertised: the first run after an install compiles the solver
         self.get_logger().info("loading the solver kernels (the first run after an install "
                                "compiles them: about a minute)")
@@ -288,7 +290,7 @@ class RsvoNode(Node):
         frame is where the base starts)."""
         if not self.p["base_frame"]:
             return T_world_cam
-        return self.T_base_cam @ T_world_cam @ np.linalg.inv(self.T_base_cam)
+        return self.T_base_cam @ T_world_cam @ self.T_cam_base
 
     def _publish(self, msg: Image, res: FrameResult, gray: np.ndarray) -> None:
         lost = res.tracking == "lost"
@@ -366,14 +368,9 @@ class RsvoNode(Node):
         st.message = self._state
         vals = {
             "input_rate_hz": f"{rate:.2f}",
-            "processing_time_ms_median": f"{np.median(self._proc_ms):.1f}" if self._proc_ms
-            else "n/a",
-            "tracking_time_ms_median": f"{np.median(self._track_ms):.1f}" if self._track_ms
-            else "n/a",
-            "mapping_time_ms_median": f"{np.median(self._map_ms):.1f}" if self._map_ms
-            else "n/a",
-            "publishing_time_ms_median": f"{np.median(self._publish_ms):.1f}"
-            if self._publish_ms else "n/a",
+            **{f"{name}_time_ms_median": f"{np.median(ms):.1f}" if ms else "n/a"
+               for name, ms in (("processing", self._proc_ms), ("tracking", self._track_ms),
+                                ("mapping", self._map_ms), ("publishing", self._publish_ms))},
             "inlier_ratio": f"{self._last_inlier_ratio:.3f}",
             "tracking_state": self._tracking,
             **{k: str(v) for k, v in self.stats.items()},

@@ -239,7 +239,15 @@ def _refine_candidates(cands: RSBatch, corr: Correspondences, lm: LMOptions,
     mu = centre(cands)
     if mu is not None:
         cands.vel = np.where(np.any(cands.vel, axis=1, keepdims=True), cands.vel, mu)
-    anchors = cands.R.copy()
+    return _refine_on_all(cands, cands.R.copy(), corr, lm, robust_scale, prior, limits, centre)
+
+
+def _refine_on_all(cands: RSBatch, anchors: np.ndarray, corr: Correspondences, lm: LMOptions,
+                   robust_scale: float, prior: np.ndarray | None, limits: SearchLimits,
+                   centre) -> tuple[RSBatch, np.ndarray, int]:  # fmt: skip
+    """LM on all points from each candidate, each within the rotation bound around its anchor
+    ``anchors`` (B, 3, 3); the lowest robust cost plus prior wins. Returns it, its anchor
+    (1, 3, 3) and the LM iterations."""
     lim = SearchLimits(limits.w_max, limits.v_max, anchors, lm.max_rotation_change_rad)
     refined, cost, it = levenberg_marquardt(cands, corr, lm.max_iterations,
                                             lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
@@ -297,15 +305,9 @@ def _global_search(corr: Correspondences, starts: RSBatch, lm: LMOptions,
         if not far.any():
             break
         picks.append(int(eligible[np.argmax(far)]))
-    cands = hyps.take(np.array(picks))
-    anchors = starts.R[origin[picks]]
-    lim = SearchLimits(limits.w_max, limits.v_max, anchors, lm.max_rotation_change_rad)
-    refined, cost, it3 = levenberg_marquardt(cands, corr, lm.max_iterations,
-                                             lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
-                                             robust_scale=scale, prior_inv_sigma=prior,
-                                             limits=lim, prior_mean=centre(cands))
-    b = int(np.argmin(cost))
-    return refined.take(b), anchors[b:b + 1], it1 + it2 + it3, len(hyps)
+    best, anchor, it3 = _refine_on_all(hyps.take(np.array(picks)), starts.R[origin[picks]],
+                                       corr, lm, scale, prior, limits, centre)  # fmt: skip
+    return best, anchor, it1 + it2 + it3, len(hyps)
 
 
 def fit_null(start: RSBatch, corr: Correspondences, lm: LMOptions,
