@@ -9,6 +9,7 @@ counts every frame), 5 s after the last one (a lossy link), or at TIMEOUT_S.
 """
 
 import json
+import os
 import sys
 import time
 
@@ -99,10 +100,12 @@ def main():
     while time.monotonic() < t_static and not static:
         rclpy.spin_once(node, timeout_sec=0.1)
     tf_hashes = sorted({str(i.topic_type_hash) for i in node.get_publishers_info_by_topic("/tf")})
-    with open(out, "w") as f:
+    # written whole, then renamed: the test polls for OUT.json and must never read half of it
+    with open(out + ".part", "w") as f:
         json.dump({"odom": odom, "diagnostics": diags, "path_lengths": paths, "tf": tfs,
                    "clouds": clouds, "keyframes": keyframes, "tf_static": static,
                    "tf_type_hashes": tf_hashes}, f)
+    os.replace(out + ".part", out)
     node.destroy_node()
     rclpy.try_shutdown()
 
