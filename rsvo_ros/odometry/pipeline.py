@@ -332,12 +332,12 @@ class OdometryPipeline:
         X = self.window.map_points()
         return X @ self.T_odom_world[:3, :3].T + self.T_odom_world[:3, 3]
 
-    def keyframe_poses(self) -> list[tuple[int, np.ndarray]]:
-        """``(stamp_ns, T_odom_camera)`` of the keyframes as the window last refined them, in
-        the odometry frame (window backend; pairwise: empty)."""
+    def keyframe_poses(self, last: int | None = None) -> list[tuple[int, np.ndarray]]:
+        """``(stamp_ns, T_odom_camera)`` of the keyframes (all, or the ``last`` ones) as the
+        window last refined them, in the odometry frame (window backend; pairwise: empty)."""
         if self.options.backend != "window":
             return []
-        return [(stamp, self.T_odom_world @ T) for stamp, T in self.window.keyframe_poses()]
+        return [(stamp, self.T_odom_world @ T) for stamp, T in self.window.keyframe_poses(last)]
 
     def observations(self) -> Observations:
         """Every feature of the last image as the window backend takes them."""

@@ -70,6 +70,9 @@ class WindowOptions:
     # against the map it has and picks up the refined map at its next frame; while mapping is
     # busy no new keyframe is made (ORB-SLAM's rule). False: inline (deterministic; the replay)
     async_mapping: bool = False
+    # refined keyframe states kept for the keyframe path (None: all, as the replay's
+    # keyframes.tum needs; a live node keeps its path length, so memory stays flat)
+    keyframe_log_max: int | None = None
 
 
 @dataclass
@@ -480,6 +483,9 @@ class WindowOdometry:
             points = self.map.points()
             log = dict(self.keyframe_log)
             log.update({k.state.stamp_ns: k.state.copy() for k in self.map.keyframes})
+            cap = self.options.keyframe_log_max
+            if cap is not None and len(log) > cap:
+                log = dict(sorted(log.items())[-cap:])
             # replaced whole, never changed in place: tracking and the viewers read them
             # without waiting for a BA
             self._points, self.keyframe_log = points, log
@@ -501,10 +507,12 @@ class WindowOdometry:
         """(M, 3) world points of the local map's landmarks (what tracking matches)."""
         return self._points[1].copy()
 
-    def keyframe_poses(self) -> list[tuple[int, np.ndarray]]:
-        """``(stamp_ns, row-0 T_world_camera)`` of every keyframe so far, as last refined."""
-        return [(stamp, self.row0_pose(state)) for stamp, state in
-                sorted(self.keyframe_log.items())]
+    def keyframe_poses(self, last: int | None = None) -> list[tuple[int, np.ndarray]]:
+        """``(stamp_ns, row-0 T_world_camera)`` of every keyframe so far (or of the ``last``
+        ones), as last refined."""
+        log = self.keyframe_log
+        stamps = sorted(log)[-last:] if last else sorted(log)
+        return [(stamp, self.row0_pose(log[stamp])) for stamp in stamps]
 
     def close(self) -> None:
         """Stop the mapping thread (async mapping)."""

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from rsvo_ros.core.geometry import quat_xyzw_from_matrix
 from rsvo_ros.core.lens import LensModel
 
 SUPPORTED_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8")
@@ -89,7 +89,7 @@ def camera_from_info(msg) -> CameraIntrinsics:
 def pose_components(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Position (3,) and unit quaternion ``quat_xyzw`` (4,) of a (4, 4) ``T`` (geometry_msgs
     order, w >= 0)."""
-    return np.asarray(T[:3, 3], float), Rotation.from_matrix(T[:3, :3]).as_quat(canonical=True)
+    return np.asarray(T[:3, 3], float), quat_xyzw_from_matrix(T[:3, :3])
 
 
 def fill_pose(pose, T: np.ndarray) -> None:

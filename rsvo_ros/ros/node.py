@@ -101,6 +101,7 @@ class RsvoNode(Node):
         self.pub_map = self.create_publisher(PointCloud2, self.p["map_points_topic"], reliable)
         self.pub_keyframes = self.create_publisher(Path, self.p["keyframe_path_topic"], reliable)
         self._last_map_publish = -np.inf
+        self._last_path_publish = -np.inf
         self.pub_tf = self.pub_tf_static = None
         if self.p["publish_tf"]:
             if TFMessage is None:
@@ -206,6 +207,7 @@ class RsvoNode(Node):
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
         opts.window.async_mapping = bool(self.p["async_mapping"])
+        opts.window.keyframe_log_max = int(self.p["path_max_length"])  # flat memory
         opts.line_delay_auto = self.p["line_delay_mode"] == "auto"
         self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)
 
@@ -316,13 +318,15 @@ class RsvoNode(Node):
         ps.header = odom.header
         ps.pose = odom.pose.pose
         self._path.append(ps)
-        path = Path()
-        path.header = odom.header
-        path.poses = list(self._path)
-        self.pub_path.publish(path)
+        now = time.monotonic()
+        if now - self._last_path_publish >= float(self.p["path_publish_period_s"]):
+            self._last_path_publish = now
+            path = Path()
+            path.header = odom.header
+            path.poses = list(self._path)
+            self.pub_path.publish(path)
         if self.p["publish_debug_image"] and self.pub_debug.get_subscription_count() > 0:
             self.pub_debug.publish(_debug_image(msg, gray, res))
-        now = time.monotonic()
         if now - self._last_map_publish >= float(self.p["map_publish_period_s"]):
             self._last_map_publish = now
             self._publish_map(odom.header)
@@ -347,7 +351,7 @@ class RsvoNode(Node):
         self.pub_map.publish(cloud)
         path = Path()
         path.header = header
-        for stamp, T in pipeline.keyframe_poses()[-int(self.p["path_max_length"]):]:
+        for stamp, T in pipeline.keyframe_poses(int(self.p["path_max_length"])):
             ps = PoseStamped()
             ps.header.frame_id = header.frame_id
             ps.header.stamp.sec, ps.header.stamp.nanosec = divmod(int(stamp), 1_000_000_000)

@@ -1,7 +1,8 @@
 """rsvo_replay: the odometry pipeline over a recorded rosbag2, as fast as the machine allows.
 
 Streams the bag (memory does not grow with its length) and writes into ``--output``:
-``trajectory.tum``, the ``odometry`` bag (``/rsvo/odom``, ``/rsvo/path``), ``summary.json`` and
+``trajectory.tum``, the ``odometry`` bag (``/rsvo/odom`` and ``/tf`` per frame, ``/rsvo/path`` at
+most 10 times per second of bag time and with the last frame, the map), ``summary.json`` and
 ``trajectory.png``. Accuracy (ATE after Sim(3) alignment, RPE) comes from ``evo``.
 Exit codes: 0 done, 1 the bag cannot be read or holds no usable frames, 2 bad arguments.
 """
@@ -44,10 +45,14 @@ from rsvo_ros.twoview.estimator import MODELS
 
 EXIT_OK, EXIT_BAD_BAG, EXIT_USAGE = 0, 1, 2
 PATH_LENGTH = 1000  # poses kept in each /rsvo/path message (bounded)
+# /rsvo/path at most once per this much bag time (and with the last frame of a trajectory): a
+# 1000-pose Path takes ~27 ms to serialize, which per frame would halve the replay's rate
+PATH_PERIOD_NS = 100_000_000
 ODOM_TOPIC, PATH_TOPIC = "/rsvo/odom", "/rsvo/path"
 MAP_TOPIC, KEYFRAMES_TOPIC, TF_TOPIC = "/rsvo/map_points", "/rsvo/keyframes", "/tf"
 MAP_PERIOD_NS = 1_000_000_000  # map points and keyframe path: once per second of bag time
 ODOM_FRAME = "odom"
+SCALE_CHECK_FRAMES = 60  # scale drift: the whole run's Sim(3) scale against these first frames
 TF_TYPE, CLOUD_TYPE = "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/PointCloud2"
 
 
@@ -82,12 +87,27 @@ def _odometry(res: FrameResult):
                               pose_covariance=covariance_for_msg(res.covariance))  # fmt: skip
 
 
-def _path(poses, stamp_ns: int):
-    ts = bagio.typestore()
-    stamped = [ts.types["geometry_msgs/msg/PoseStamped"](
-        header=bagio.header(s, ODOM_FRAME), pose=bagio.pose_msg(T[:3, :3], T[:3, 3]))
-        for s, T in poses]  # fmt: skip
-    return ts.types[bagio.PATH_TYPE](header=bagio.header(stamp_ns, ODOM_FRAME), poses=stamped)
+class PathMessages:
+    """``nav_msgs/Path`` messages of ``(stamp_ns, T)`` poses, each pose's ``PoseStamped`` built
+    once (building one takes ~0.25 ms: rebuilt for every message, a 1000-pose path cost 0.25 s
+    per frame). Only the poses of the last message are kept."""
+
+    def __init__(self):
+        self._stamped: dict[tuple[int, bytes], object] = {}
+
+    def __call__(self, poses, stamp_ns: int):
+        ts = bagio.typestore()
+        keep = {}
+        for s, T in poses:
+            key = (int(s), np.asarray(T, float).tobytes())
+            msg = self._stamped.get(key)
+            if msg is None:
+                msg = ts.types["geometry_msgs/msg/PoseStamped"](
+                    header=bagio.header(s, ODOM_FRAME), pose=bagio.pose_msg(T[:3, :3], T[:3, 3]))
+            keep[key] = msg
+        self._stamped = keep
+        return ts.types[bagio.PATH_TYPE](header=bagio.header(stamp_ns, ODOM_FRAME),
+                                         poses=list(keep.values()))
 
 
 def _tf(res: FrameResult):
@@ -210,10 +230,18 @@ def replay(cfg: ReplayConfig) -> dict:
         c_map = writer.add_connection(MAP_TOPIC, CLOUD_TYPE, typestore=ts)
         c_kf = writer.add_connection(KEYFRAMES_TOPIC, bagio.PATH_TYPE, typestore=ts)
 
+        path_msg, keyframe_path_msg = PathMessages(), PathMessages()
+        last_path_ns = None
+
         def write_map(stamp: int) -> None:
             writer.write(c_map, stamp, bagio.serialize(_cloud(pipeline.map_points(), stamp)))
-            writer.write(c_kf, stamp, bagio.serialize(_path(
-                pipeline.keyframe_poses()[-PATH_LENGTH:], stamp)))
+            writer.write(c_kf, stamp, bagio.serialize(keyframe_path_msg(
+                pipeline.keyframe_poses(PATH_LENGTH), stamp)))
+
+        def write_path(stamp: int) -> None:
+            nonlocal last_path_ns
+            writer.write(c_path, stamp, bagio.serialize(path_msg(poses, stamp)))
+            last_path_ns = stamp
 
         try:
             for conn, _t, raw in reader.messages(connections=wanted):
@@ -271,7 +299,9 @@ def replay(cfg: ReplayConfig) -> dict:
                     time_resets += 1
                     if last_map_ns is not None:
                         write_map(last_map_ns)  # the last map of the ended trajectory
-                    est, last_map_ns = {}, None
+                    if poses and last_path_ns != poses[-1][0]:
+                        write_path(poses[-1][0])  # ... and its whole path
+                    est, last_map_ns, last_path_ns = {}, None, None
                     trajectories.append(est)
                     poses.clear()
                 est[stamp] = res.T_world_cam
@@ -279,7 +309,8 @@ def replay(cfg: ReplayConfig) -> dict:
                 writer.write(c_odom, stamp, bagio.serialize(_odometry(res)))
                 writer.write(c_tf, stamp, bagio.serialize(_tf(res)))
                 poses.append((stamp, res.T_world_cam))
-                writer.write(c_path, stamp, bagio.serialize(_path(poses, stamp)))
+                if last_path_ns is None or stamp - last_path_ns >= PATH_PERIOD_NS:
+                    write_path(stamp)
                 if last_map_ns is None or stamp - last_map_ns >= MAP_PERIOD_NS:
                     write_map(stamp)
                     last_map_ns = stamp
@@ -294,6 +325,8 @@ def replay(cfg: ReplayConfig) -> dict:
         finally:
             if est and results_meta and results_meta[-1]["stamp_ns"] != last_map_ns:
                 write_map(results_meta[-1]["stamp_ns"])  # the final map and keyframes
+            if poses and last_path_ns != poses[-1][0]:
+                write_path(poses[-1][0])  # the whole path with the last frame
             reader.close()
             if bar is not None:
                 bar.close()
@@ -335,6 +368,13 @@ def replay(cfg: ReplayConfig) -> dict:
         }
     if gt and len(est) >= 3:
         summary["accuracy"] = accuracy(gt, est)
+        first = dict(sorted(est.items())[:SCALE_CHECK_FRAMES])
+        if len(est) >= 2 * SCALE_CHECK_FRAMES and sum(s in gt for s in first) >= 3:
+            # monocular scale drift: the Sim(3) scale of the whole run against its start's
+            s0 = accuracy(gt, first)["sim3_scale"]
+            summary["accuracy"]["scale_drift"] = {
+                "first_frames": SCALE_CHECK_FRAMES, "sim3_scale_first": s0,
+                "ratio": summary["accuracy"]["sim3_scale"] / s0}
         for t, row in zip(trajectories, summary["trajectories"], strict=True):
             if len(t) >= 3 and sum(s in gt for s in t) >= 3:
                 row["ate_m_rmse"] = accuracy(gt, t)["ate_m"]["rmse"]

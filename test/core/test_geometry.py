@@ -78,3 +78,21 @@ def test_rs_projection_without_motion_is_pinhole(rng):
 def test_rotation_angle(deg):
     R = geo.so3_exp(np.radians(deg) * np.array([0.0, 0.6, 0.8]))
     assert np.isclose(geo.rotation_angle_deg(R), deg, atol=1e-6)
+
+
+def test_quaternion_from_matrix_is_scipys_canonical_quaternion(rng):
+    """Every branch of Shepperd's method (random rotations, and rotations by ~pi about each
+    axis, where the trace is smallest) against scipy, sign convention included."""
+    from scipy.spatial.transform import Rotation
+
+    mats = list(Rotation.random(300, random_state=1).as_matrix())
+    for axis in np.eye(3):
+        for angle in (np.pi, np.pi - 1e-3, -np.pi + 1e-3, 1e-9):
+            mats.append(geo.so3_exp(axis * angle))
+    mats.append(np.eye(3))
+    for R in mats:
+        q = geo.quat_xyzw_from_matrix(R)
+        assert np.allclose(q, Rotation.from_matrix(R).as_quat(canonical=True), atol=1e-12)
+    # a slightly non-orthonormal matrix (accumulated products) still gives a unit quaternion
+    q = geo.quat_xyzw_from_matrix(geo.so3_exp(rng.normal(size=3)) * (1 + 1e-9))
+    assert np.isclose(np.linalg.norm(q), 1.0)

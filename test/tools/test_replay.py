@@ -55,8 +55,25 @@ def test_replay_writes_every_output(vehicle_bag, tmp_path, model, extra, capsys)
     assert np.allclose(np.linalg.norm(vals[:, 4:], axis=1), 1.0)  # unit quaternions
     topics = _topics(out / "odometry")
     n = summary["frames_posed"]
-    assert {t: topics[t] for t in ("/rsvo/odom", "/rsvo/path", "/tf")} == \
-        {"/rsvo/odom": n, "/rsvo/path": n, "/tf": n}
+    assert {t: topics[t] for t in ("/rsvo/odom", "/tf")} == {"/rsvo/odom": n, "/tf": n}
+    # the path at most every 0.1 s of bag time (30 Hz: every third frame) and with the last
+    # frame; that one holds every pose
+    stamps = np.round(vals[:, 0] * 1e9).astype(np.int64)
+    written = [stamps[0]]
+    for s in stamps[1:]:
+        if s - written[-1] >= 100_000_000:
+            written.append(s)
+    if written[-1] != stamps[-1]:
+        written.append(stamps[-1])
+    assert topics["/rsvo/path"] == len(written) < n
+    with Reader(out / "odometry") as r:
+        conns = [c for c in r.connections if c.topic == "/rsvo/path"]
+        paths = [bagio.deserialize(raw, c.msgtype) for c, _t, raw in r.messages(connections=conns)]
+    assert [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in paths] == written
+    last = paths[-1].poses
+    assert [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in last] == list(stamps)
+    assert np.allclose([last[-1].pose.position.x, last[-1].pose.position.y,
+                        last[-1].pose.position.z], vals[-1, 1:4], atol=1e-6)
     # map points and keyframes at most once per second of bag time, and at the end
     assert 1 <= topics["/rsvo/map_points"] == topics["/rsvo/keyframes"] <= 3
     with Reader(out / "odometry") as r:
@@ -215,14 +232,31 @@ def test_console_script(vehicle_bag, tmp_path):
     assert "rsvo_replay" in proc.stderr  # the progress bar
 
 
-def test_rsvo_calibrate_writes_a_parameter_file_the_node_can_load(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def walk_bag(tmp_path_factory) -> Path:
+    bag = tmp_path_factory.mktemp("walk") / "walk"
+    write_bag(bag, SynthConfig(frames=120, motion="walk", severity=1.0, seed=3,
+                               line_delay=5e-5), progress=False)
+    return bag
+
+
+def test_replay_reports_the_scale_drift(walk_bag, tmp_path):
+    """The whole run's Sim(3) scale against that of its first 60 frames (monocular scale
+    drift; no run-away on 120 frames of walking)."""
+    assert replay_main([str(walk_bag), "--output", str(tmp_path / "rep"), "--no-progress"]) == 0
+    acc = json.loads((tmp_path / "rep" / "summary.json").read_text())["accuracy"]
+    drift = acc["scale_drift"]
+    assert drift["first_frames"] == 60
+    assert np.isclose(drift["ratio"], acc["sim3_scale"] / drift["sim3_scale_first"])
+    assert 0.7 < drift["ratio"] < 1.4
+
+
+def test_rsvo_calibrate_writes_a_parameter_file_the_node_can_load(walk_bag, tmp_path, capsys):
     import yaml
 
     from rsvo_ros.tools.calibrate import main as calibrate_main
 
-    bag = tmp_path / "walk"
-    write_bag(bag, SynthConfig(frames=120, motion="walk", severity=1.0, seed=3,
-                               line_delay=5e-5), progress=False)
+    bag = walk_bag
     out = tmp_path / "calib.yaml"
     assert calibrate_main([str(bag), "--output", str(out), "--no-progress"]) == 0
     printed = capsys.readouterr().out
