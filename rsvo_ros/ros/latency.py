@@ -109,7 +109,10 @@ def main(argv: list[str] | None = None) -> int:
                "tracking_ms_median": diag.get("tracking_time_ms_median"),
                "mapping_ms_median": diag.get("mapping_time_ms_median"),
                "publishing_ms_median": diag.get("publishing_time_ms_median"),
-               "processing_ms_median": diag.get("processing_time_ms_median")}
+               "processing_ms_median": diag.get("processing_time_ms_median"),
+               # which frames got no odometry (dropped while busy, held, lost): a start-up
+               # phase shows as the first indices
+               "missing_frames": [k for k, s in enumerate(sent) if s not in got]}
         results.append(row)
         print(json.dumps(row))
     if args.json:

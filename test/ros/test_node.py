@@ -108,7 +108,8 @@ def _run_graph(graph: Graph, bag: Path, node_args: list[str], play_args: list[st
 def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_path):
     """Player -> node -> separate subscriber; the trajectory is the offline pipeline's."""
     data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002",
-                                         "-p", "async_mapping:=false"],
+                                         "-p", "async_mapping:=false",
+                                         "-p", "path_publish_period_s:=0.0"],
                       ["--rate", "0.25"], FRAMES)
     odom = data["odom"]
     # reliable at 7.5 Hz: every frame (a frame dropped while the node was busy would show in

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 import rclpy
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import Odometry, Path
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -132,6 +132,22 @@ def test_base_frame_odometry_uses_the_fixed_transform(ros_context):
         last = h.odom[-1].pose.pose.position
         # the camera drives forward (optical z) = base x
         assert last.x > 0 and abs(last.x) > abs(last.z)
+    finally:
+        h.close()
+
+
+def test_path_publish_period_bounds_the_path_messages(ros_context):
+    """Every frame has its odometry; the path goes out at most once per period (the first
+    frame's here), and holds every pose so far."""
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("path_publish_period_s", value=60.0)])
+    paths = []
+    h.client_node.create_subscription(Path, "/rsvo/path", paths.append, 50)
+    try:
+        info, msgs = _frames(4)
+        h.feed(info, msgs)
+        assert len(h.odom) == 4
+        assert [len(p.poses) for p in paths] == [1]
     finally:
         h.close()
 
