@@ -143,12 +143,14 @@ def test_walk_motion_has_its_features():
     assert traj.pans  # and turns while walking
 
 
-def _walk_run(async_mapping: bool, frames: int = 60, seed: int = 0):
+def _walk_run(async_mapping: bool, frames: int = 60, seed: int = 0,
+              keyframe_log_max: int | None = None):
     cfg = SynthConfig(frames=frames, motion="walk", severity=1.0, width=640, height=360,
                       seed=seed)
     renderer = SequenceRenderer(cfg)
     opts = PipelineOptions()
     opts.window.async_mapping = async_mapping
+    opts.window.keyframe_log_max = keyframe_log_max
     pipe = OdometryPipeline(renderer.K, None, cfg.tau, opts)
     est, gt, steps, mapped = {}, {}, [], 0
     prev = None
@@ -171,9 +173,14 @@ def _walk_run(async_mapping: bool, frames: int = 60, seed: int = 0):
 def test_async_mapping_tracks_every_frame_and_matches_inline_accuracy():
     """Mapping on its own thread (the node's default): every frame posed, keyframes mapped in
     the background and picked up, the published odometry without jumps, ATE close to inline."""
-    ate_inline, steps_inline, _, _ = _walk_run(False)
-    ate_async, steps_async, mapped, pipe = _walk_run(True)
-    assert mapped >= 2 and len(pipe.window.keyframe_log) >= 3
+    ate_inline, steps_inline, _, inline = _walk_run(False)
+    # the node's bounded keyframe log (path_max_length) as well
+    ate_async, steps_async, mapped, pipe = _walk_run(True, keyframe_log_max=3)
+    assert mapped >= 2 and len(inline.window.keyframe_log) > 3
+    assert len(pipe.window.keyframe_log) == 3  # the newest three, memory flat
+    newest = sorted(pipe.window.keyframe_log)[-2:]
+    assert [s for s, _ in pipe.keyframe_poses(2)] == newest
+    assert [s for s, _ in inline.keyframe_poses()] == sorted(inline.window.keyframe_log)
     assert ate_async < 1.5 * ate_inline + 0.02, (ate_async, ate_inline)
     # continuity: no published step much larger than the inline run's largest
     assert steps_async.max() < 2.0 * steps_inline.max() + 1e-3
