@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,8 +38,15 @@ from rsvo_ros.odometry.frame import (
 )
 from rsvo_ros.odometry.local_map import BAReport, LocalMap, MapOptions
 from rsvo_ros.twoview import LMOptions, RansacOptions, estimate_relative_pose
+from rsvo_ros.twoview.essential import kabsch
 
 FOCAL_REF_PX = 1000.0  # pixel thresholds below are given at this focal length and scale with it
+
+
+# a new map after a loss starts at this fraction of init_parallax_px of translation parallax
+# (the first map's parallax is not rotation-compensated; a walk's head bob reaches 80 px of it
+# in about 20 frames, translation alone in 100 or more)
+REINIT_PARALLAX_FACTOR = 2.0
 
 
 @dataclass
@@ -143,6 +151,9 @@ class WindowOdometry:
         self._origin: FrameState | None = None  # where the trajectory restarts after a loss
         self._lost = 0
         self._tracked_at_kf = 0
+        # speeds of the last tracked frames: a new map after a loss keeps the trajectory's
+        # scale through the speed, and the last frames before a loss may be off
+        self._speeds: deque = deque(maxlen=30)
         self._hints: dict[int, np.ndarray] = {}  # stamp -> the chain's row-0 pose
         if getattr(self, "_mapper", None) is not None:
             self._mapper.close()
@@ -228,6 +239,24 @@ class WindowOdometry:
         d = d[np.isfinite(d)]
         return float(np.median(d)) * self.focal if len(d) else 0.0
 
+    def _translation_parallax_px(self, kf: KeyFrame, obs: Observations) -> float:
+        """Median image motion of shared tracks since ``kf`` after removing the rotation that
+        best explains them (fitted twice on the better half: the translation's part)."""
+        _, ia, ib = np.intersect1d(kf.obs.ids, obs.ids, return_indices=True)
+        if len(ia) < 8:
+            return 0.0
+        a = np.column_stack([kf.obs.x[ia], np.ones(len(ia))])
+        b = np.column_stack([obs.x[ib], np.ones(len(ib))])
+        a /= np.linalg.norm(a, axis=1, keepdims=True)
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        keep = np.ones(len(a), bool)
+        for _ in range(3):
+            R = kabsch(a[keep], b[keep])
+            r = a @ R.T
+            d = np.linalg.norm(r[:, :2] / r[:, 2:] - obs.x[ib], axis=1)
+            keep = d <= np.median(d)
+        return float(np.median(d)) * self.focal
+
     # ------------------------------------------------------------------ tracking
 
     @property
@@ -294,7 +323,20 @@ class WindowOdometry:
 
     def _initialise(self, stamp_ns: int, obs: Observations) -> WindowResult:
         ref = self._ref
-        par = self._parallax_px(ref, obs, ref.state.R)
+        shared = len(np.intersect1d(ref.obs.ids, obs.ids))
+        if shared < 2 * self.options.min_inliers:
+            # the reference's tracks are gone (a turn): this frame is the new reference
+            state = ref.state.copy()
+            state.stamp_ns = stamp_ns
+            self._ref = self._new_keyframe(state, obs, None)
+            return WindowResult("held", f"initialising: new reference frame ({shared} tracks "
+                                        "left of the last one)", state)  # fmt: skip
+        if self._origin is None:
+            par = self._parallax_px(ref, obs, ref.state.R)
+        else:
+            # a new map after a loss, often in a fast turn: the parallax of translation only
+            # (a turn alone reached 80 px in two frames, and the map started from a rotation)
+            par = self._translation_parallax_px(ref, obs) * REINIT_PARALLAX_FACTOR
         if par < self.options.init_parallax_px * self._px:
             return WindowResult("held", f"initialising: parallax {par:.1f} px", ref.state)
         dt = (stamp_ns - ref.state.stamp_ns) * 1e-9
@@ -371,7 +413,7 @@ class WindowOdometry:
             o.track_iterations)  # fmt: skip
         err = np.linalg.norm(res, axis=1)
         inl = err < o.track_inlier_px * self._px
-        if inl.sum() < o.min_inliers or not np.isfinite(R).all():
+        if inl.sum() < o.min_inliers or not (np.isfinite(R).all() and np.isfinite(p).all()):
             return None
         state = FrameState(stamp_ns, R, p, w, v)
         sigma2 = float(np.mean(err[inl] ** 2)) / 2.0
@@ -397,8 +439,13 @@ class WindowOdometry:
                 result.state = state.copy()
                 result.ba_moved = [(before, state.copy())]
         self._lost = 0
+        self._speeds.append(float(np.linalg.norm(state.v)))
         self._before, self._last = self._last, state.copy()
         return result
+
+    def _usual_speed(self) -> float | None:
+        """Median speed (map units/s) of the last tracked frames, None before any."""
+        return float(np.median(self._speeds)) if self._speeds else None
 
     def _needs_keyframe(self, last_kf: KeyFrame, obs: Observations, state: FrameState,
                         tracked: int) -> bool:  # fmt: skip
@@ -417,7 +464,10 @@ class WindowOdometry:
             self._mapper.wait_idle()  # the pair recovery and a map reset change the map
             self._pick_up_mapping()
         last_kf = self.map.keyframes[-1] if self.map.keyframes else None
-        if last_kf is not None:
+        # a map left with fewer points than tracking needs is not recovered into (its keyframes
+        # would be placed by the last speed alone, and it never comes back): it starts over
+        dead = len(self.map.landmarks) < self.options.min_landmarks
+        if last_kf is not None and not dead:
             dt = (stamp_ns - last_kf.state.stamp_ns) * 1e-9
             res, ia, ib = self._pair(last_kf.obs, obs, dt, self.seed + self._next_kf)
             if res is not None:
@@ -437,7 +487,10 @@ class WindowOdometry:
                                         ba_moved=[(before, state.copy())])  # fmt: skip
         self._lost += 1
         held = self._last.copy()
-        if self._lost >= self.options.lost_frames_to_reset:
+        if self._lost >= self.options.lost_frames_to_reset or dead:
+            speed, usual = float(np.linalg.norm(held.v)), self._usual_speed()
+            if usual is not None and speed > 2.0 * usual:
+                held.v = held.v * (usual / speed)  # a diverging last pose must not set it
             self._origin = held
             self.map = LocalMap(self.focal, self.options.map)
             self._points = (np.zeros(0, np.int64), np.zeros((0, 3)))

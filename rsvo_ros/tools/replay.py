@@ -367,7 +367,11 @@ def replay(cfg: ReplayConfig) -> dict:
             "bag_line_delay_s": bag_line_delay,
         }
     if gt and len(est) >= 3:
-        summary["accuracy"] = accuracy(gt, est)
+        try:
+            summary["accuracy"] = accuracy(gt, est)
+        except Exception as exc:  # noqa: BLE001 - e.g. evo refusing a diverged trajectory
+            summary["accuracy_error"] = f"{type(exc).__name__}: {exc}"
+    if "accuracy" in summary:
         first = dict(sorted(est.items())[:SCALE_CHECK_FRAMES])
         if len(est) >= 2 * SCALE_CHECK_FRAMES and sum(s in gt for s in first) >= 3:
             # monocular scale drift: the Sim(3) scale of the whole run against its start's
@@ -386,7 +390,10 @@ def replay(cfg: ReplayConfig) -> dict:
         if gt and sum(s in gt for s in kf_poses) >= 3:
             # the corrected keyframe trajectory (the window's last word on each keyframe),
             # beside the continuous published odometry above
-            summary["keyframes"]["accuracy"] = accuracy(gt, kf_poses)
+            try:
+                summary["keyframes"]["accuracy"] = accuracy(gt, kf_poses)
+            except Exception as exc:  # noqa: BLE001 - as for the frames' accuracy
+                summary["keyframes"]["accuracy_error"] = f"{type(exc).__name__}: {exc}"
     summary["frames"] = results_meta
     with open(cfg.output / "summary.json", "w") as f:
         json.dump(summary, f, indent=1)
