@@ -370,8 +370,8 @@ class OdometryPipeline:
         if state is not None and out.status == "posed":
             for before, after in out.ba_moved:  # a BA moved a frame: keep odometry continuous
                 D = self.window.row0_pose(before) @ pose_inverse(self.window.row0_pose(after))
-                if np.isfinite(D).all():  # (never a NaN pose; a non-finite BA state is not
-                    self.T_odom_world = self.T_odom_world @ D  # taken anyway)
+                if np.isfinite(D).all():  # never a NaN pose
+                    self.T_odom_world = self.T_odom_world @ D
             # held frames keep the last pose
             self.T_world_cam = self.T_odom_world @ self.window.row0_pose(state)
         if out.status == "posed":

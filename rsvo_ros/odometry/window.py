@@ -38,14 +38,15 @@ from rsvo_ros.odometry.frame import (
 )
 from rsvo_ros.odometry.local_map import BAReport, LocalMap, MapOptions
 from rsvo_ros.twoview import LMOptions, RansacOptions, estimate_relative_pose
-from rsvo_ros.twoview.essential import kabsch
+from rsvo_ros.twoview.essential import rotation_only_residual_px
+from rsvo_ros.twoview.state import Correspondences
 
 FOCAL_REF_PX = 1000.0  # pixel thresholds below are given at this focal length and scale with it
 
 
-# a new map after a loss starts at this fraction of init_parallax_px of translation parallax
-# (the first map's parallax is not rotation-compensated; a walk's head bob reaches 80 px of it
-# in about 20 frames, translation alone in 100 or more)
+# a new map after a loss starts at 1 / REINIT_PARALLAX_FACTOR of init_parallax_px, measured as
+# translation parallax (the first map's parallax is not rotation-compensated: a walk's head bob
+# reaches 80 px of it in about 20 frames, translation alone in 100 or more)
 REINIT_PARALLAX_FACTOR = 2.0
 
 
@@ -240,22 +241,15 @@ class WindowOdometry:
         return float(np.median(d)) * self.focal if len(d) else 0.0
 
     def _translation_parallax_px(self, kf: KeyFrame, obs: Observations) -> float:
-        """Median image motion of shared tracks since ``kf`` after removing the rotation that
-        best explains them (fitted twice on the better half: the translation's part)."""
+        """Median image motion of shared tracks since ``kf`` left by the rotation that best
+        explains them (the pair estimator's measure of translation parallax)."""
         _, ia, ib = np.intersect1d(kf.obs.ids, obs.ids, return_indices=True)
         if len(ia) < 8:
             return 0.0
-        a = np.column_stack([kf.obs.x[ia], np.ones(len(ia))])
-        b = np.column_stack([obs.x[ib], np.ones(len(ib))])
-        a /= np.linalg.norm(a, axis=1, keepdims=True)
-        b /= np.linalg.norm(b, axis=1, keepdims=True)
-        keep = np.ones(len(a), bool)
-        for _ in range(3):
-            R = kabsch(a[keep], b[keep])
-            r = a @ R.T
-            d = np.linalg.norm(r[:, :2] / r[:, 2:] - obs.x[ib], axis=1)
-            keep = d <= np.median(d)
-        return float(np.median(d)) * self.focal
+        ones, zeros = np.ones((len(ia), 1)), np.zeros(len(ia))
+        corr = Correspondences(np.hstack([kf.obs.x[ia], ones]), np.hstack([obs.x[ib], ones]),
+                               zeros, zeros, self.focal)  # fmt: skip
+        return rotation_only_residual_px(corr, np.random.default_rng(self.seed))[0]
 
     # ------------------------------------------------------------------ tracking
 

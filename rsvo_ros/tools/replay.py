@@ -243,6 +243,11 @@ def replay(cfg: ReplayConfig) -> dict:
             writer.write(c_path, stamp, bagio.serialize(path_msg(poses, stamp)))
             last_path_ns = stamp
 
+        def finish_path() -> None:
+            """The whole path with the trajectory's last frame, if not written with it yet."""
+            if poses and last_path_ns != poses[-1][0]:
+                write_path(poses[-1][0])
+
         try:
             for conn, _t, raw in reader.messages(connections=wanted):
                 try:
@@ -299,8 +304,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     time_resets += 1
                     if last_map_ns is not None:
                         write_map(last_map_ns)  # the last map of the ended trajectory
-                    if poses and last_path_ns != poses[-1][0]:
-                        write_path(poses[-1][0])  # ... and its whole path
+                    finish_path()  # ... and its whole path
                     est, last_map_ns, last_path_ns = {}, None, None
                     trajectories.append(est)
                     poses.clear()
@@ -325,8 +329,7 @@ def replay(cfg: ReplayConfig) -> dict:
         finally:
             if est and results_meta and results_meta[-1]["stamp_ns"] != last_map_ns:
                 write_map(results_meta[-1]["stamp_ns"])  # the final map and keyframes
-            if poses and last_path_ns != poses[-1][0]:
-                write_path(poses[-1][0])  # the whole path with the last frame
+            finish_path()
             reader.close()
             if bar is not None:
                 bar.close()
@@ -367,10 +370,7 @@ def replay(cfg: ReplayConfig) -> dict:
             "bag_line_delay_s": bag_line_delay,
         }
     if gt and len(est) >= 3:
-        try:
-            summary["accuracy"] = accuracy(gt, est)
-        except Exception as exc:  # noqa: BLE001 - e.g. evo refusing a diverged trajectory
-            summary["accuracy_error"] = f"{type(exc).__name__}: {exc}"
+        _put_accuracy(summary, gt, est)
     if "accuracy" in summary:
         first = dict(sorted(est.items())[:SCALE_CHECK_FRAMES])
         if len(est) >= 2 * SCALE_CHECK_FRAMES and sum(s in gt for s in first) >= 3:
@@ -390,10 +390,7 @@ def replay(cfg: ReplayConfig) -> dict:
         if gt and sum(s in gt for s in kf_poses) >= 3:
             # the corrected keyframe trajectory (the window's last word on each keyframe),
             # beside the continuous published odometry above
-            try:
-                summary["keyframes"]["accuracy"] = accuracy(gt, kf_poses)
-            except Exception as exc:  # noqa: BLE001 - as for the frames' accuracy
-                summary["keyframes"]["accuracy_error"] = f"{type(exc).__name__}: {exc}"
+            _put_accuracy(summary["keyframes"], gt, kf_poses)
     summary["frames"] = results_meta
     with open(cfg.output / "summary.json", "w") as f:
         json.dump(summary, f, indent=1)
@@ -433,6 +430,15 @@ def sim3_aligned_positions(gt: dict[int, np.ndarray],
     ref, traj = sync.associate_trajectories(_evo_traj(gt), _evo_traj(est), max_diff=1e-3)
     traj.align(ref, correct_scale=True)
     return ref.positions_xyz, traj.positions_xyz
+
+
+def _put_accuracy(out: dict, gt: dict[int, np.ndarray], est: dict[int, np.ndarray]) -> None:
+    """``out["accuracy"]``, or ``out["accuracy_error"]`` where evo refuses the trajectory (one
+    that diverged to 1e16 m is not a valid SE(3) path for it): the summary is still written."""
+    try:
+        out["accuracy"] = accuracy(gt, est)
+    except Exception as exc:  # noqa: BLE001 - any evo failure is reported, not raised
+        out["accuracy_error"] = f"{type(exc).__name__}: {exc}"
 
 
 def accuracy(gt: dict[int, np.ndarray], est: dict[int, np.ndarray]) -> dict:
