@@ -42,6 +42,10 @@ from rsvo_ros.twoview import LMOptions, RansacOptions, RelativePoseResult, estim
 MIN_SHARED_FOR_SCALE = 8  # shared triangulated points needed to measure the relative scale
 MAX_DEPTH_IN_BASELINES = 40.0  # farther points do not vote on the scale
 MAX_SCALE_STEP = 1.25  # largest change of the baseline from one pair to the next
+# after a restart from another estimate (the window's map was lost), the baseline stays within
+# this factor of the one it restarted with: measured, a chain bridging a stop-and-look-around
+# (no translation to measure the scale from) otherwise grew it 1.25x per pair, to 1e15 m
+RESTART_BASELINE_RANGE = 4.0
 HOLD_COVARIANCE_GROWTH = 4.0  # covariance multiplier of a held (not estimated) pose
 DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
 
@@ -99,6 +103,7 @@ class PairwiseChain:
         self.covariance = np.zeros((6, 6))
         self._prev_depths: dict[int, float] = {}  # track id -> metric depth in the last frame
         self._last_baseline = initial_scale  # metres between middle-row cameras
+        self._baseline_range: tuple[float, float] | None = None  # set by restart()
         # the last estimated motion between middle-row cameras: (R, unit t, seconds)
         self._last_motion: tuple[np.ndarray, np.ndarray, float] | None = None
 
@@ -111,6 +116,8 @@ class PairwiseChain:
         self._last_motion = None
         if baseline > 0:
             self._last_baseline = baseline
+            self._baseline_range = (baseline / RESTART_BASELINE_RANGE,
+                                    baseline * RESTART_BASELINE_RANGE)
 
     def step(self, pair: TrackedPair, interval: float, idx: int) -> PairStep:
         """One frame pair (``interval`` s apart); updates the chain's pose and covariance."""
@@ -206,7 +213,10 @@ class PairwiseChain:
         lim = self.max_scale_change
         if not (np.isfinite(measured) and last / lim <= measured <= last * lim):
             return last / unit, f"baseline {measured:.3g} rejected: kept the previous one"
-        return float(np.clip(measured, last / MAX_SCALE_STEP, last * MAX_SCALE_STEP)) / unit, ""
+        baseline = float(np.clip(measured, last / MAX_SCALE_STEP, last * MAX_SCALE_STEP))
+        if self._baseline_range is not None:
+            baseline = float(np.clip(baseline, *self._baseline_range))
+        return baseline / unit, ""
 
     def _accumulate_covariance(self, rel: RelativePoseResult, scale: float) -> None:
         """Random-walk growth: the pair's covariance, rotated into the world frame."""

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rsvo_ros.core.geometry import pose_inverse
+from rsvo_ros.core.geometry import rigid_correction
 from rsvo_ros.core.lens import LensModel, as_lens, undistort_points
 from rsvo_ros.odometry.frame import FrameState, Observations
 from rsvo_ros.odometry.line_delay import (
@@ -369,7 +369,7 @@ class OdometryPipeline:
             self.T_odom_world = np.eye(4)  # the new map starts in the chain's (published) frame
         if state is not None and out.status == "posed":
             for before, after in out.ba_moved:  # a BA moved a frame: keep odometry continuous
-                D = self.window.row0_pose(before) @ pose_inverse(self.window.row0_pose(after))
+                D = rigid_correction(self.window.row0_pose(after), self.window.row0_pose(before))
                 if np.isfinite(D).all():  # never a NaN pose
                     self.T_odom_world = self.T_odom_world @ D
             # held frames keep the last pose

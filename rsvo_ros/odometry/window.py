@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rsvo_ros.core.geometry import pose_at_row, pose_inverse, so3_exp, so3_log
+from rsvo_ros.core.geometry import pose_at_row, rigid_correction, so3_exp, so3_log
 from rsvo_ros.odometry import rs_projection
 from rsvo_ros.odometry.frame import (
     FrameState,
@@ -47,7 +47,7 @@ FOCAL_REF_PX = 1000.0  # pixel thresholds below are given at this focal length a
 # a new map after a loss starts at 1 / REINIT_PARALLAX_FACTOR of init_parallax_px, measured as
 # translation parallax (the first map's parallax is not rotation-compensated: a walk's head bob
 # reaches 80 px of it in about 20 frames, translation alone in 100 or more)
-REINIT_PARALLAX_FACTOR = 2.0
+REINIT_PARALLAX_FACTOR = 3.0
 
 
 @dataclass
@@ -61,6 +61,10 @@ class WindowOptions:
     keyframe_max_interval_s: float = 0.4
     min_landmarks: int = 20  # map points seen to track against the map
     min_inliers: int = 15
+    # a tracking result with fewer inliers than this share of the map points it saw is not
+    # taken (the pair estimator recovers the frame): in a fast turn a pose that explains a
+    # quarter of its points had diverged and, made a keyframe, emptied the map
+    min_inlier_ratio: float = 0.5
     track_robust_px: float = 1.5  # Cauchy scale of tracking
     track_inlier_px: float = 3.0
     track_iterations: int = 10
@@ -79,6 +83,10 @@ class WindowOptions:
     # against the map it has and picks up the refined map at its next frame; while mapping is
     # busy no new keyframe is made (ORB-SLAM's rule). False: inline (deterministic; the replay)
     async_mapping: bool = False
+    # async mapping goes synchronous (waits for the mapper, maps keyframes inline) while
+    # tracking is weak: inliers below this share of the median of the last frames (a fast turn
+    # leaving the map; tracking against a map one keyframe behind lost it there)
+    sync_below_inlier_share: float = 0.5
     # refined keyframe states kept for the keyframe path (None: all, as the replay's
     # keyframes.tum needs; a live node keeps its path length, so memory stays flat)
     keyframe_log_max: int | None = None
@@ -155,6 +163,8 @@ class WindowOdometry:
         # speeds of the last tracked frames: a new map after a loss keeps the trajectory's
         # scale through the speed, and the last frames before a loss may be off
         self._speeds: deque = deque(maxlen=30)
+        self._inliers: deque = deque(maxlen=30)  # inliers of the last tracked frames
+        self._weak = False  # the last frame's tracking was weak (async: map synchronously)
         self._hints: dict[int, np.ndarray] = {}  # stamp -> the chain's row-0 pose
         if getattr(self, "_mapper", None) is not None:
             self._mapper.close()
@@ -269,6 +279,8 @@ class WindowOdometry:
         if self._ref is not None:
             return self._initialise(stamp_ns, obs)
         self._picked = []
+        if self._weak and self._mapper is not None:
+            self._mapper.wait_idle()  # track against the newest map (and map inline if weak)
         self._pick_up_mapping()
         result = self._track_map(stamp_ns, obs)
         if result is None:
@@ -295,11 +307,11 @@ class WindowOdometry:
         done = self._mapper.finished()
         if done is None:
             return
-        kf, before, report = done
+        kf, before, report, self._points = done
         self._pending_kf = None
         after = kf.state.copy() if kf in self.map.keyframes else before.copy()
         # world-frame correction of the map around the keyframe (row 0, as the pipeline's)
-        D = self.row0_pose(after) @ pose_inverse(self.row0_pose(before))
+        D = rigid_correction(self.row0_pose(before), self.row0_pose(after))
         for st in (self._last, self._before):
             if st is not None:
                 st.R, st.p = D[:3, :3] @ st.R, D[:3, :3] @ st.p + D[:3, 3]
@@ -390,7 +402,7 @@ class WindowOdometry:
 
     def _track_map(self, stamp_ns: int, obs: Observations) -> WindowResult | None:
         o = self.options
-        ids, X = self._points  # an atomic snapshot: mapping replaces it when it is done
+        ids, X = self._points  # replaced whole: by inline mapping, or at pick-up
         last_kf = self._newest_keyframe()
         _, ia, ib = np.intersect1d(ids, obs.ids, return_indices=True)
         if len(ia) < o.min_landmarks or last_kf is None:
@@ -407,7 +419,8 @@ class WindowOdometry:
             o.track_iterations)  # fmt: skip
         err = np.linalg.norm(res, axis=1)
         inl = err < o.track_inlier_px * self._px
-        if inl.sum() < o.min_inliers or not (np.isfinite(R).all() and np.isfinite(p).all()):
+        if inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)) \
+                or not (np.isfinite(R).all() and np.isfinite(p).all()):  # fmt: skip
             return None
         state = FrameState(stamp_ns, R, p, w, v)
         sigma2 = float(np.mean(err[inl] ** 2)) / 2.0
@@ -415,14 +428,18 @@ class WindowOdometry:
                               hessian=H, sigma2=max(sigma2, 1e-6))  # fmt: skip
         if last_kf.after is None and last_kf.state.stamp_ns < stamp_ns:
             last_kf.after = state.copy()  # read by the next window BA
+        inliers = int(inl.sum())
+        self._weak = bool(self._inliers) and \
+            inliers < o.sync_below_inlier_share * float(np.median(self._inliers))
+        self._inliers.append(inliers)
         mapping_busy = self._mapper is not None and self._mapper.busy
-        if not mapping_busy and self._needs_keyframe(last_kf, obs, state, int(inl.sum())):
+        if not mapping_busy and self._needs_keyframe(last_kf, obs, state, inliers):
             kf = self._new_keyframe(state, obs, (w.copy(), v.copy()))
             kf.before = self._last.copy()
             kf.rejected.update(int(t) for t in obs.ids[ib][~inl])
             result.keyframe = True
             self._tracked_at_kf = int(inl.sum())
-            if self._mapper is not None:
+            if self._mapper is not None and not self._weak:
                 self._pending_kf = kf
                 self._mapper.submit(kf, state.copy())
             else:
@@ -518,8 +535,18 @@ class WindowOdometry:
     # ------------------------------------------------------------------ mapping
 
     def map_keyframe(self, kf: KeyFrame | None, optimize_only: bool = False) -> BAReport:
-        """Insert ``kf`` (None: only optimise), slide the window, run the BA and publish the
-        new points to tracking."""
+        """Insert ``kf`` (None: only optimise), slide the window, run the BA and give tracking
+        the new points."""
+        report, points = self._map(kf, optimize_only)
+        self._points = points
+        return report
+
+    def _map(self, kf: KeyFrame | None,
+             optimize_only: bool = False) -> tuple[BAReport, tuple[np.ndarray, np.ndarray]]:
+        """:meth:`map_keyframe` without handing the points to tracking: the mapping thread's
+        points go to tracking with the keyframe's correction, at the frame that picks both up
+        (points from the refined map with a prediction from the map as it was had put
+        tracking off by that correction)."""
         with self._lock:
             if kf is not None and not optimize_only:
                 self.map.add_keyframe(kf)
@@ -533,10 +560,9 @@ class WindowOdometry:
             cap = self.options.keyframe_log_max
             if cap is not None and len(log) > cap:
                 log = dict(sorted(log.items())[-cap:])
-            # replaced whole, never changed in place: tracking and the viewers read them
-            # without waiting for a BA
-            self._points, self.keyframe_log = points, log
-        return report
+            # replaced whole, never changed in place: the viewers read it without waiting
+            self.keyframe_log = log
+        return report, points
 
     def set_line_delay(self, line_delay: float) -> None:
         """Go on with another line delay (line_delay auto): every kept observation's row time
@@ -549,6 +575,8 @@ class WindowOdometry:
             if self._ref is not None:
                 self._ref.obs.s = self.row_time(self._ref.obs.rows)
             self._points = self.map.points()
+            if self._mapper is not None:
+                self._mapper.replace_points(self._points)
 
     def map_points(self) -> np.ndarray:
         """(M, 3) world points of the local map's landmarks (what tracking matches)."""
@@ -599,7 +627,8 @@ class Mapper:
     def __init__(self, odometry: WindowOdometry):
         self.odometry = odometry
         self._job: tuple[KeyFrame, FrameState] | None = None
-        self._done: tuple[KeyFrame, FrameState, BAReport] | None = None
+        # the keyframe, its state when submitted, the BA report and the map's points
+        self._done: tuple[KeyFrame, FrameState, BAReport, tuple] | None = None
         self._cv = threading.Condition()
         self._stop = False
         self._thread = threading.Thread(target=self._run, name="rsvo_mapping", daemon=True)
@@ -618,11 +647,19 @@ class Mapper:
             self._job = (kf, state_before)
             self._cv.notify_all()
 
-    def finished(self) -> tuple[KeyFrame, FrameState, BAReport] | None:
-        """The mapped keyframe, its state when it was submitted and the BA report, once."""
+    def finished(self) -> tuple[KeyFrame, FrameState, BAReport, tuple] | None:
+        """The mapped keyframe, its state when it was submitted, the BA report and the
+        points for tracking, once."""
         with self._cv:
             done, self._done = self._done, None
             return done
+
+    def replace_points(self, points: tuple[np.ndarray, np.ndarray]) -> None:
+        """A result not picked up yet hands these points to tracking instead (the map's
+        points were recomputed since, for another line delay)."""
+        with self._cv:
+            if self._done is not None:
+                self._done = (*self._done[:3], points)
 
     def wait_idle(self, timeout: float = 30.0) -> None:
         """Until the current job is done (its result stays to be picked up)."""
@@ -636,9 +673,9 @@ class Mapper:
                 if self._stop:
                     return
                 kf, before = self._job
-            report = self.odometry.map_keyframe(kf)
+            report, points = self.odometry._map(kf)
             with self._cv:
-                self._job, self._done = None, (kf, before, report)
+                self._job, self._done = None, (kf, before, report, points)
                 self._cv.notify_all()
 
     def close(self) -> None:

@@ -96,3 +96,27 @@ def test_quaternion_from_matrix_is_scipys_canonical_quaternion(rng):
     # a slightly non-orthonormal matrix (accumulated products) still gives a unit quaternion
     q = geo.quat_xyzw_from_matrix(geo.so3_exp(rng.normal(size=3)) * (1 + 1e-9))
     assert np.isclose(np.linalg.norm(q), 1.0)
+
+
+def test_rigid_correction_is_rigid_even_when_chained_without_end(rng):
+    """A window BA's correction, chained frame after frame (async mapping's pick-ups and the
+    odometry frame): the plain product grew a rotation's departure from orthonormality about
+    threefold per step; the correction's rotation is projected onto SO(3)."""
+    T_from, T_to = np.eye(4), np.eye(4)
+    T_from[:3, :3], T_from[:3, 3] = geo.so3_exp(rng.normal(size=3)), rng.normal(size=3)
+    T_to[:3, :3], T_to[:3, 3] = geo.so3_exp(rng.normal(size=3)), rng.normal(size=3)
+    D = geo.rigid_correction(T_from, T_to)
+    assert np.allclose(D @ T_from, T_to, atol=1e-12)  # rigid inputs: the exact correction
+    # a state corrected by the correction of its own last correction, 60 times (a pick-up
+    # moves the state the next correction is measured from)
+    state, plain = T_from.copy(), T_from.copy()
+    for _ in range(60):
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = geo.so3_exp(rng.normal(scale=0.01, size=3)), 0.01
+        after, after_plain = step @ state, step @ plain
+        state = geo.rigid_correction(state, after) @ state
+        plain = (after_plain @ geo.pose_inverse(plain)) @ plain
+    drift = abs(np.linalg.det(state[:3, :3]) - 1.0)
+    assert drift < 1e-12, drift
+    # the plain product: far from a rotation (NaN by now)
+    assert not abs(np.linalg.det(plain[:3, :3]) - 1.0) < 1e-6

@@ -137,6 +137,35 @@ def test_scale_follows_a_camera_that_speeds_up():
     assert growth_est == pytest.approx(growth_gt, rel=0.03)
 
 
+def test_a_restarted_chain_keeps_its_baseline_near_the_one_it_restarted_with():
+    """The chain bridges a lost map (the window restarts it with its last baseline). Pairs
+    that keep measuring a larger scale (a stop-and-look-around: no translation to measure
+    it from) grew the baseline 1.25x per pair without end, to 1e15 m in 700 frames; after a
+    restart it stays within RESTART_BASELINE_RANGE of the restart's. A chain that was not
+    restarted (the pairwise backend) still follows any steady change of speed."""
+    from types import SimpleNamespace
+
+    from rsvo_ros.odometry.pairwise import RESTART_BASELINE_RANGE
+
+    def grow(chain, steps):
+        ids = np.arange(20)
+        for _ in range(steps):
+            chain._prev_depths = {int(i): 1.0 for i in ids}
+            # each pair's depths say twice the last baseline (clipped to 1.25x per pair)
+            rel = SimpleNamespace(inliers=np.ones(20, bool))
+            scale, _ = chain._relative_scale(ids, rel, np.full(20, 0.5 / chain._last_baseline),
+                                             1.0)  # fmt: skip
+            chain._last_baseline = scale
+        return chain._last_baseline
+
+    pipe = OdometryPipeline(np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]]), None, 0.0)
+    pipe.chain.restart(np.eye(4), 0.05)
+    assert grow(pipe.chain, 40) == pytest.approx(0.05 * RESTART_BASELINE_RANGE)
+    free = OdometryPipeline(np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]]), None, 0.0)
+    free.chain._last_baseline = 0.05
+    assert grow(free.chain, 40) == pytest.approx(0.05 * 1.25**40)
+
+
 def test_time_jumps_late_frames_far_ahead_stamps_and_pauses():
     cfg = SynthConfig(frames=8, motion="vehicle", severity=0.5, width=320, height=180, seed=2)
     frames = render_sequence(cfg)
