@@ -47,7 +47,7 @@ FOCAL_REF_PX = 1000.0  # pixel thresholds below are given at this focal length a
 # a new map after a loss starts at 1 / REINIT_PARALLAX_FACTOR of init_parallax_px, measured as
 # translation parallax (the first map's parallax is not rotation-compensated: a walk's head bob
 # reaches 80 px of it in about 20 frames, translation alone in 100 or more)
-REINIT_PARALLAX_FACTOR = 3.0
+REINIT_PARALLAX_FACTOR = 2.0
 
 
 @dataclass
