@@ -438,7 +438,7 @@ class WindowOdometry:
             kf.before = self._last.copy()
             kf.rejected.update(int(t) for t in obs.ids[ib][~inl])
             result.keyframe = True
-            self._tracked_at_kf = int(inl.sum())
+            self._tracked_at_kf = inliers
             if self._mapper is not None and not self._weak:
                 self._pending_kf = kf
                 self._mapper.submit(kf, state.copy())

@@ -13,7 +13,7 @@ from rsvo_ros.core.geometry import so3_exp
 from rsvo_ros.odometry.frame import FrameState, KeyFrame, Observations
 from rsvo_ros.odometry.local_map import LocalMap, MapOptions
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
-from rsvo_ros.odometry.window import WindowOdometry
+from rsvo_ros.odometry.window import WindowOdometry, WindowOptions
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import accuracy
 
@@ -234,3 +234,31 @@ def test_async_pick_ups_keep_the_tracked_state_a_rotation(rng):
     assert np.allclose(odometry.row0_pose(odometry._last), odometry.row0_pose(kf.state),
                        atol=1e-9)  # the tracked state is where the last correction put it
     odometry._mapper = None
+
+
+def test_a_tracking_pose_that_explains_under_half_its_points_is_not_taken():
+    """min_inlier_ratio: a frame whose map points are mostly wrong matches (in a fast turn a
+    diverged pose explained a quarter of them, was made a keyframe and emptied the map) is not
+    posed by tracking; the same frame with the check off is. The map keeps its keyframes."""
+    tau = 3e-5
+    K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
+    states, X = _walk_states(30, tau)
+    reasons = {}
+    for ratio in (0.5, 0.0):
+        rng = np.random.default_rng(1)
+        wo = WindowOdometry(K, tau, WindowOptions(min_inlier_ratio=ratio))
+        for k, st in enumerate(states):
+            Xc = (X - st.p) @ st.R
+            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
+                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            obs = _obs_of(st, X[vis], vis, tau, rng, 0.3)
+            if k == len(states) - 1:  # the last frame: 60 % of its tracks are wrong matches
+                bad = rng.random(len(obs)) < 0.6
+                obs.x[bad] += rng.normal(0, 30 / FOCAL, (bad.sum(), 2))
+                keyframes = len(wo.map.keyframes)
+            res = wo.track(st.stamp_ns, obs)
+        assert not wo.initialising
+        reasons[ratio] = res.reason
+        assert len(wo.map.keyframes) >= keyframes - 1
+    assert reasons[0.0] == ""  # tracked
+    assert reasons[0.5] != "", reasons  # not by tracking: recovered by the pair, or held
