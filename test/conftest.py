@@ -72,6 +72,4 @@ def ros_test_env(domain_id: int) -> dict[str, str]:
 
 def ground_truth_pose(frame) -> np.ndarray:
     """(4, 4) ``T_world_camera`` of a rendered :class:`rsvo_ros.sim.synth.Frame` (row 0)."""
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = frame.R_world_cam, frame.p_world_cam
-    return T
+    return frame.pose()

@@ -123,8 +123,11 @@ def rigid_correction(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
     """(4, 4) ``T_to T_from^-1`` (the world-frame motion taking ``T_from`` to ``T_to``) with
     its rotation projected onto SO(3). Corrections like this are chained without end (each
     window BA's, frame after frame): an unprojected one grows a rotation's departure from
-    orthonormality about threefold per step, measured 1e-16 to 1e-2 in 30 corrections."""
+    orthonormality about threefold per step, measured 1e-16 to 1e-2 in 30 corrections.
+    Non-finite inputs give the non-finite product, unprojected, for the caller to refuse."""
     D = T_to @ pose_inverse(T_from)
+    if not np.isfinite(D).all():
+        return D
     U, _, Vt = np.linalg.svd(D[:3, :3])
     D[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     return D

@@ -313,7 +313,7 @@ class WindowOdometry:
         # world-frame correction of the map around the keyframe (row 0, as the pipeline's)
         D = rigid_correction(self.row0_pose(before), self.row0_pose(after))
         for st in (self._last, self._before):
-            if st is not None:
+            if st is not None and np.isfinite(D).all():  # never a NaN pose
                 st.R, st.p = D[:3, :3] @ st.R, D[:3, :3] @ st.p + D[:3, 3]
         self._picked.append(((before, after), report))
 

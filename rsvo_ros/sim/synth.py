@@ -438,6 +438,12 @@ class Frame:
     v: np.ndarray  # m/s, row-0 camera frame
     row_pose: RowPoseFn  # rows (n,) -> T_world_camera of those rows
 
+    def pose(self) -> np.ndarray:
+        """(4, 4) row-0 ``T_world_camera``."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.R_world_cam, self.p_world_cam
+        return T
+
 
 class SequenceRenderer:
     """Renders the frames of a :class:`SynthConfig` one at a time (constant memory)."""

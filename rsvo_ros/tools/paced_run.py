@@ -66,9 +66,7 @@ def paced_run(frames: int, rate: float, mapping: str, seed: int, width: int, hei
             outcomes[f"{res.status}: {res.reason.split(' (')[0] or 'tracked'}"] += 1
             if slow_ms is not None and res.time_ms > slow_ms:
                 slow.append([k, round(res.time_ms, 1), res.reason or "tracked"])
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = frame.R_world_cam, frame.p_world_cam
-            gt[stamp], est[stamp] = T, res.T_world_cam
+            gt[stamp], est[stamp] = frame.pose(), res.T_world_cam
     finally:
         pipeline.close()
     out = {"frames": frames, "rate_hz": rate, "mapping": mapping, "seed": seed,

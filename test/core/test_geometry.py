@@ -118,5 +118,9 @@ def test_rigid_correction_is_rigid_even_when_chained_without_end(rng):
         plain = (after_plain @ geo.pose_inverse(plain)) @ plain
     drift = abs(np.linalg.det(state[:3, :3]) - 1.0)
     assert drift < 1e-12, drift
+    # non-finite poses: no SVD failure, a non-finite correction the caller refuses
+    bad = T_to.copy()
+    bad[0, 0] = np.nan
+    assert not np.isfinite(geo.rigid_correction(T_from, bad)).all()
     # the plain product: far from a rotation (NaN by now)
     assert not abs(np.linalg.det(plain[:3, :3]) - 1.0) < 1e-6
