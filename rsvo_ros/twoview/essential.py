@@ -16,6 +16,7 @@ from rsvo_ros.twoview.state import Correspondences, RSBatch
 
 MIN_POINTS_GS = 5  # the 5-point solver
 CHEIRALITY_VOTERS = 100  # inliers that choose among the four decompositions of E
+ROTATION_VOTERS = 100  # points that rank the rotation-only hypotheses
 
 
 def sampson_gs_px(E: np.ndarray, x_prev: np.ndarray, x_curr: np.ndarray, focal: float):
@@ -156,15 +157,18 @@ def rotation_only_residual_px(corr: Correspondences, rng: np.random.Generator,
     Returns it and that rotation."""
     b_p = corr.x_prev / np.linalg.norm(corr.x_prev, axis=1, keepdims=True)
     b_c = corr.x_curr / np.linalg.norm(corr.x_curr, axis=1, keepdims=True)
-    idx = np.argsort(rng.random((hypotheses, len(corr))), axis=1)[:, :2]
+    n = len(corr)
+    idx = np.argpartition(rng.random((hypotheses, n)), 1, axis=1)[:, :2]
     Rs = kabsch(b_p[idx], b_c[idx])
 
-    def residuals(R):
-        rp = b_p @ np.swapaxes(R, -1, -2)
+    def residuals(R, keep=slice(None)):
+        rp = b_p[keep] @ np.swapaxes(R, -1, -2)
         z = np.where(np.abs(rp[..., 2:3]) > 1e-12, rp[..., 2:3], 1e-12)
-        return np.linalg.norm(rp[..., :2] / z - corr.x_curr[:, :2], axis=-1) * corr.focal
+        return np.linalg.norm(rp[..., :2] / z - corr.x_curr[keep, :2], axis=-1) * corr.focal
 
-    med = np.median(residuals(Rs), axis=1)
+    # the hypotheses are ranked on evenly spread voters (the refits below use all points)
+    voters = np.linspace(0, n - 1, min(n, ROTATION_VOTERS)).astype(int)
+    med = np.median(residuals(Rs, voters), axis=1)
     R = Rs[int(np.argmin(med))]
     for _ in range(2):
         r = residuals(R)

@@ -30,8 +30,8 @@ from rsvo_ros.twoview.essential import (
 from rsvo_ros.twoview.options import LMOptions, RansacOptions
 from rsvo_ros.twoview.search import (
     INIT_METHOD,
+    GSStarts,
     data_scale,
-    gs_starts,
     rotation_start,
     search_fast,
     search_paper,
@@ -240,12 +240,22 @@ def estimate_relative_pose(
     if mask.sum() < min_inliers:
         return failed(f"too few inliers for a GS essential matrix ({int(mask.sum())})", mask,
                       iters)
-    parallax, R_rot = rotation_only_residual_px(corr, rng)
     has_pose = np.linalg.norm(t) > 0
+    start_scale = more_starts = None
+    if model == "rs" and mode == "fast" and has_pose:
+        # where even the tolerant GS fit leaves the points far off (strong RS distortion), the
+        # search is global: its extra GS starts are fitted meanwhile, on other threads
+        start_scale = data_scale(RSBatch.from_pose(R, t), corr, np.inf)
+        if start_scale >= lm.local_scale_px:
+            more_starts = GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed,
+                                   min_inliers)
+    parallax, R_rot = rotation_only_residual_px(corr, rng)
     # the noise of the model RANSAC fitted (an upper bound: RS distortion adds to it)
     e_fit = sampson_gs_px(E, corr.x_prev, corr.x_curr, corr.focal)
     noise_px = float(np.median(e_fit[mask])) if has_pose else 0.0
     if parallax < max(min_parallax_px, PARALLAX_TO_NOISE * noise_px):
+        if more_starts is not None:
+            more_starts.cancel()
         return failed(f"insufficient parallax ({parallax:.2f} px after the best rotation, "
                       f"noise {noise_px:.2f} px): pure rotation or no motion", mask, iters)
     if not has_pose:
@@ -269,7 +279,7 @@ def estimate_relative_pose(
         # where even the tolerant fit leaves the points far off (strong RS distortion: the
         # global search), that one does (MAGSAC then takes its iteration cap, ~5 ms)
         null_start = start
-        if data_scale(start, corr, np.inf) < lm.local_scale_px:
+        if start_scale < lm.local_scale_px:
             R_g, t_g, mask_g, _, _ = estimate_gs_opencv(corr, ransac.threshold_px,
                                                         ransac.confidence,
                                                         ransac.null_max_iterations, seed,
@@ -283,9 +293,10 @@ def estimate_relative_pose(
         local = None if predicted is None else RSBatch.from_pose(*predicted)
 
         def starts() -> RSBatch:  # the global search's: several GS fits and a rotation fit
-            found = [start] + ([] if null_start is start else [null_start]) + gs_starts(
-                corr, pts_prev[:, 1] - row_ref, ransac, lm, seed, min_inliers) + [
-                rotation_start(corr, R_rot)] + ([] if local is None else [local])
+            extra = more_starts or GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed,
+                                            min_inliers)
+            found = [start] + ([] if null_start is start else [null_start]) + extra.result(
+                ) + [rotation_start(corr, R_rot)] + ([] if local is None else [local])
             return RSBatch(*(np.concatenate([getattr(s, f) for s in found])
                              for f in ("R", "t", "vel")))  # fmt: skip
 

@@ -7,7 +7,9 @@ model (:mod:`rsvo_ros.twoview.solver`) for Levenberg-Marquardt, residuals and de
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -28,6 +30,7 @@ from rsvo_ros.twoview.state import NUM_PARAMS, Correspondences, RSBatch
 # GS starts of the RS model: OpenCV's USAC with local optimisation finds a good GS fit of RS
 # data (inlier ratio ~35-75 %) in 1-2 ms where plain RANSAC takes 7-35 ms.
 INIT_METHOD = cv2.USAC_FAST
+GS_START_WORKERS = 2  # threads of the GS starts' OpenCV fits (the machine class has 2 cores)
 CANDIDATE_SEPARATION_DEG = 1.0  # sample hypotheses this far apart are distinct candidates
 CHEIRALITY_POINTS = 100  # points that vote on a hypothesis' depth consistency
 # LM iterations of the GS alternative of the model selection: it converges in a few where there
@@ -250,7 +253,8 @@ def _refine_on_all(cands: RSBatch, anchors: np.ndarray, corr: Correspondences, l
     (1, 3, 3) and the LM iterations."""
     lim = SearchLimits(limits.w_max, limits.v_max, anchors, lm.max_rotation_change_rad)
     refined, cost, it = levenberg_marquardt(cands, corr, lm.max_iterations,
-                                            lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
+                                            lambda_init=lm.lambda_init,
+                                            rel_tol=lm.refine_rel_tol,
                                             robust_scale=robust_scale, prior_inv_sigma=prior,
                                             limits=lim, prior_mean=centre(cands))
     k = int(np.argmin(cost))
@@ -430,25 +434,53 @@ def _polish(best: RSBatch, corr: Correspondences, threshold_px: float, lm: LMOpt
     return best, it4
 
 
-def gs_starts(corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacOptions,
-               lm: LMOptions, seed: int, min_inliers: int) -> list[RSBatch]:
-    """More GS starting points for the RS search: the RS distortion makes GS fits depend on
-    the threshold and on which rows they see, and at strong distortion any one of them can be
-    several degrees off. Fits with other thresholds and on three row bands."""
-    starts = []
-    jobs = [(np.ones(len(corr), bool), thr) for thr in lm.init_thresholds_px]
-    height = max(float(np.ptp(rows_from_ref)), 1.0)
-    edges = np.min(rows_from_ref) + height * np.array([0.0, 1 / 3, 2 / 3, 1.0 + 1e-9])
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        jobs.append(((rows_from_ref >= lo) & (rows_from_ref < hi), ransac.init_threshold_px))
-    for mask, thr in jobs:
-        if mask.sum() < max(min_inliers, 2 * MIN_POINTS_GS):
-            continue
-        R, t, inl, _, _ = estimate_gs_opencv(corr.subset(mask), thr, ransac.confidence,
-                                              ransac.init_max_iterations, seed, INIT_METHOD)
-        if inl.sum() >= min_inliers and np.linalg.norm(t) > 0:
-            starts.append(RSBatch.from_pose(R, t))
-    return starts
+class GSStarts:
+    """More GS starting points for the RS search, fitted on a small thread pool while the
+    caller goes on (OpenCV releases the GIL; on 2 cores the four fits take ~1.5 ms of wall time
+    instead of ~3): the RS distortion makes GS fits depend on the threshold and on which rows
+    they see, and at strong distortion any one of them can be several degrees off. Fits with
+    ``lm.init_thresholds_px`` on all points and with ``ransac.init_threshold_px`` on three row
+    bands. :meth:`result` waits for them; :meth:`cancel` drops those not started."""
+
+    def __init__(self, corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacOptions,
+                 lm: LMOptions, seed: int, min_inliers: int) -> None:
+        jobs = [(np.ones(len(corr), bool), thr) for thr in lm.init_thresholds_px]
+        height = max(float(np.ptp(rows_from_ref)), 1.0)
+        edges = np.min(rows_from_ref) + height * np.array([0.0, 1 / 3, 2 / 3, 1.0 + 1e-9])
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            jobs.append(((rows_from_ref >= lo) & (rows_from_ref < hi),
+                         ransac.init_threshold_px))
+        jobs = [(mask, thr) for mask, thr in jobs
+                if mask.sum() >= max(min_inliers, 2 * MIN_POINTS_GS)]
+
+        def fit(mask: np.ndarray, thr: float) -> RSBatch | None:
+            # cv2.setRNGSeed inside is per thread in OpenCV: the same fits as sequentially
+            R, t, inl, _, _ = estimate_gs_opencv(corr.subset(mask), thr, ransac.confidence,
+                                                  ransac.init_max_iterations, seed, INIT_METHOD)
+            return RSBatch.from_pose(R, t) if inl.sum() >= min_inliers and np.linalg.norm(
+                t) > 0 else None
+
+        pool = _gs_pool()
+        self._futures = [pool.submit(fit, mask, thr) for mask, thr in jobs]
+
+    def result(self) -> list[RSBatch]:
+        return [s for s in (f.result() for f in self._futures) if s is not None]
+
+    def cancel(self) -> None:
+        for f in self._futures:
+            f.cancel()
+
+
+_GS_POOL: ThreadPoolExecutor | None = None
+_GS_POOL_LOCK = threading.Lock()
+
+
+def _gs_pool() -> ThreadPoolExecutor:
+    global _GS_POOL
+    with _GS_POOL_LOCK:
+        if _GS_POOL is None:
+            _GS_POOL = ThreadPoolExecutor(GS_START_WORKERS, thread_name_prefix="rsvo_gs_start")
+        return _GS_POOL
 
 
 def rotation_start(corr: Correspondences, R: np.ndarray) -> RSBatch:

@@ -76,6 +76,30 @@ def test_same_seed_same_result(paper_scene):
     assert np.array_equal(a.inliers, b.inliers)
 
 
+def test_concurrent_calls_give_the_sequential_results(paper_scene):
+    """The node estimates from its tracking and mapping threads at once, and the GS starts of
+    the global search are fitted on a thread pool with OpenCV's generator seeded per thread:
+    four calls at once (strong distortion: the global search, its starts on the pool) give
+    exactly what one after the other gives."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(11)
+    pairs = [paper_scene.frame_pair(rng, level=5) for _ in range(4)]
+    noisy = [p.pts_curr + rng.normal(size=p.pts_curr.shape) for p in pairs]
+
+    def run(k):
+        p = pairs[k]
+        return estimate_relative_pose(p.pts_prev, noisy[k], p.K, p.line_delay, seed=k)
+
+    sequential = [run(k) for k in range(4)]
+    with ThreadPoolExecutor(4) as pool:
+        concurrent = list(pool.map(run, range(4)))
+    for a, b in zip(sequential, concurrent, strict=True):
+        assert a.ok and b.ok
+        assert np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+        assert np.array_equal(a.w_curr, b.w_curr) and np.array_equal(a.inliers, b.inliers)
+
+
 def test_statistics_are_reported(paper_scene):
     pair = paper_scene.frame_pair(np.random.default_rng(5), level=2)
     res = estimate_relative_pose(pair.pts_prev, pair.pts_curr, pair.K, pair.line_delay)
