@@ -262,3 +262,51 @@ def test_a_tracking_pose_that_explains_under_half_its_points_is_not_taken():
         assert len(wo.map.keyframes) >= keyframes - 1
     assert reasons[0.0] == ""  # tracked
     assert reasons[0.5] != "", reasons  # not by tracking: recovered by the pair, or held
+
+
+def test_async_pair_recovery_publishes_before_its_keyframe_is_mapped(monkeypatch):
+    """Async mapping: where tracking against the map fails, the pair estimator's pose is
+    published at once and its keyframe mapped on the mapping thread (inline it cost the
+    tracking path 80-140 ms at 1280x720); the next frame picks it up. The recovered pose is
+    the one an inline recovery finds before its BA, close to the truth."""
+    tau = 3e-5
+    K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
+    states, X = _walk_states(32, tau)
+    rng = np.random.default_rng(4)
+    obs_all = []
+    for st in states:
+        Xc = (X - st.p) @ st.R
+        vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
+                             & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+        obs_all.append(_obs_of(st, X[vis], vis, tau, rng, 0.3))
+    results = {}
+    for async_mapping in (True, False):
+        wo = WindowOdometry(K, tau, WindowOptions(async_mapping=async_mapping))
+        for st, obs in zip(states[:30], obs_all[:30], strict=True):
+            wo.track(st.stamp_ns, obs)
+            if wo._mapper is not None:
+                wo._mapper.wait_idle()
+        assert not wo.initialising
+        tracking = wo._track_map
+        monkeypatch.setattr(wo, "_track_map", lambda *a: None)  # tracking fails on frame 30
+        keyframes = len(wo.map.keyframes)
+        res = wo.track(states[30].stamp_ns, obs_all[30])
+        assert res.reason == "recovered with the pair estimator" and res.keyframe
+        results[async_mapping] = res.state
+        if async_mapping:
+            assert res.ba is None and not res.ba_moved  # not mapped on the tracking path
+            assert wo._pending_kf is not None and len(wo.map.keyframes) == keyframes
+            monkeypatch.setattr(wo, "_track_map", tracking)
+            wo._mapper.wait_idle()
+            nxt = wo.track(states[31].stamp_ns, obs_all[31])
+            assert nxt.status == "posed" and nxt.ba_moved  # picked up with the next frame
+            assert len(wo.map.keyframes) == keyframes + 1 and wo._pending_kf is None
+        else:
+            assert res.ba is not None
+        wo.close()
+    truth = states[30]
+    # the map's world is the first keyframe's; compare the motion since frame 29 instead
+    for state in results.values():
+        assert np.isfinite(state.p).all() and np.isfinite(state.R).all()
+    assert np.linalg.norm(results[True].p - results[False].p) < 0.05 * np.linalg.norm(
+        truth.p - states[29].p) + 0.01
