@@ -473,12 +473,7 @@ class WindowOdometry:
         map where the trajectory stands."""
         if self._mapper is not None:
             self._mapper.wait_idle()  # the pair recovery and a map reset change the map
-            picked = len(self._picked)
             self._pick_up_mapping()
-            if len(self._picked) > picked:  # a keyframe came in meanwhile: track against it
-                retried = self._track_map(stamp_ns, obs)
-                if retried is not None:
-                    return retried
         last_kf = self.map.keyframes[-1] if self.map.keyframes else None
         # a map left with fewer points than tracking needs is not recovered into (its keyframes
         # would be placed by the last speed alone, and it never comes back): it starts over
@@ -493,22 +488,14 @@ class WindowOdometry:
                                                                scale)
                     kf = self._new_keyframe(state, obs, vel_cur)
                     before = state.copy()
-                    report, moved = None, []
-                    if self._mapper is not None:
-                        # published now; its keyframe is mapped off the tracking path (the
-                        # mapper is idle: waited for above)
-                        self._pending_kf = kf
-                        self._mapper.submit(kf, state.copy())
-                    else:
-                        report = self.map_keyframe(kf)
-                        state = kf.state.copy() if kf in self.map.keyframes else state
-                        moved = [(before, state.copy())]
+                    report = self.map_keyframe(kf)
+                    state = kf.state.copy() if kf in self.map.keyframes else state
                     self._before, self._last = self._last, state.copy()
                     self._lost = 0
                     self._tracked_at_kf = len(self.map.landmarks)
                     return WindowResult("posed", "recovered with the pair estimator", state,
                                         inliers=res.num_inliers, keyframe=True, ba=report,
-                                        ba_moved=moved)  # fmt: skip
+                                        ba_moved=[(before, state.copy())])  # fmt: skip
         self._lost += 1
         held = self._last.copy()
         if self._lost >= self.options.lost_frames_to_reset or dead:
