@@ -436,9 +436,10 @@ def _polish(best: RSBatch, corr: Correspondences, threshold_px: float, lm: LMOpt
 
 class GSStarts:
     """More GS starting points for the RS search, fitted on a small thread pool while the
-    caller goes on (OpenCV releases the GIL; on 2 cores the four fits take ~1.5 ms of wall time
-    instead of ~3): the RS distortion makes GS fits depend on the threshold and on which rows
-    they see, and at strong distortion any one of them can be several degrees off. Fits with
+    caller goes on with the rotation and null fits (OpenCV releases the GIL; the four fits
+    take ~3 ms on one core): the RS distortion makes GS fits depend on the threshold and on
+    which rows they see, and at strong distortion any one of them can be several degrees off.
+    Fits with
     ``lm.init_thresholds_px`` on all points and with ``ransac.init_threshold_px`` on three row
     bands. :meth:`result` waits for them; :meth:`cancel` drops those not started."""
 
