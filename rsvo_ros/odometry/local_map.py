@@ -205,28 +205,32 @@ class LocalMap:
         dropped = 0
         while len(self.keyframes) > self.options.window_size:
             old = self.keyframes[0]
-            pts = self.points(np.array([i for i, lm in self.landmarks.items()
-                                        if lm.anchor == old.id], np.int64))  # fmt: skip
+            ids, X = self.points(np.array([i for i, lm in self.landmarks.items()
+                                           if lm.anchor == old.id], np.int64))  # fmt: skip
             self.keyframes.pop(0)
             del self._index[old.id]
-            for tid, X in zip(*pts, strict=True):
-                tid = int(tid)
-                new_anchor = next((kf for kf in self.keyframes if tid in self._index[kf.id]
-                                   and tid not in kf.rejected), None)  # fmt: skip
-                if new_anchor is None:
+            moved: dict[int, list[int]] = {}  # new anchor's position -> rows of ids, X
+            for n, tid in enumerate(ids.tolist()):
+                k = next((k for k, kf in enumerate(self.keyframes)
+                          if tid in self._index[kf.id] and tid not in kf.rejected), None)
+                if k is None:
                     del self.landmarks[tid]
                     dropped += 1
-                    continue
-                n = self._index[new_anchor.id][tid]
-                s = float(new_anchor.obs.s[n])
-                R, p = new_anchor.state.at(s)
-                depth = (R.T @ (X - p))[2]
-                if not depth > 0:
-                    del self.landmarks[tid]
-                    dropped += 1
-                    continue
-                self.landmarks[tid] = Landmark(new_anchor.id, new_anchor.obs.x[n].copy(), s,
-                                               float(1.0 / depth))
+                else:
+                    moved.setdefault(k, []).append(n)
+            for k, rows in moved.items():  # vectorized per new anchor (held the GIL for
+                kf = self.keyframes[k]  # 40 ms a keyframe at 1280x720 landmark by landmark)
+                at = np.array([self._index[kf.id][int(ids[n])] for n in rows], np.int64)
+                R, p = row_cameras(kf, kf.obs.s[at])
+                depth = np.einsum("nji,nj->ni", R, X[rows] - p)[:, 2]
+                for n, j, d in zip(rows, at.tolist(), depth.tolist(), strict=True):
+                    tid = int(ids[n])
+                    if not d > 0:
+                        del self.landmarks[tid]
+                        dropped += 1
+                        continue
+                    self.landmarks[tid] = Landmark(kf.id, kf.obs.x[j].copy(),
+                                                   float(kf.obs.s[j]), float(1.0 / d))
         return dropped
 
     # ------------------------------------------------------------------ queries

@@ -48,10 +48,14 @@ def test_landmarks_are_triangulated_with_each_rows_camera_and_re_anchored(rng):
         if k == 1:
             tid, Xe = m.points()
             assert len(tid) == 80 and np.allclose(Xe, X[tid], atol=1e-6)
-    assert m.slide() == 0  # the oldest keyframe leaves: its landmarks move to the next one
-    assert {lm.anchor for lm in m.landmarks.values()} == {1}
+    m.keyframes[1].rejected.update({0, 1, 2})  # an outlier in the next keyframe: the one after
+    m.keyframes[2].rejected.add(0)  # an outlier in both: dropped
+    # the oldest keyframe leaves: its landmarks move to the next keyframe that saw them
+    assert m.slide() == 1 and 0 not in m.landmarks
+    assert m.landmarks[1].anchor == m.landmarks[2].anchor == 2
+    assert {lm.anchor for t, lm in m.landmarks.items() if t > 2} == {1}
     tid, Xe = m.points()
-    assert np.allclose(Xe, X[tid], atol=1e-6)
+    assert len(tid) == 79 and np.allclose(Xe, X[tid], atol=1e-6)
     report = m.optimize()
     assert report.rejected == 0 and report.cost < 1e-9
 
