@@ -7,8 +7,9 @@ given rate, subscribes to ``/rsvo/odom`` and ``/diagnostics`` and reports, per r
 odometry received (the node drops frames it cannot keep up with and counts them), the latency
 from the image stamp to the odometry's arrival (median, p95), the node's own stage times from its
 diagnostics (tracking per frame, mapping per keyframe, publishing per frame, medians) and its
-CPU use (% of one core, from /proc; the node is found by name or ``--node-pid``). Start the
-node first, e.g.
+CPU use (% of one core, from /proc; the node is found by name or ``--node-pid``), and the
+node's frame counters over the run (received, processed, dropped, held, skipped: why frames
+got no odometry). Start the node first, e.g.
 ``rsvo_node --ros-args -p line_delay:=5e-5``.
 """
 
@@ -77,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     for rate in args.rate:
         got.clear()
         sent = []
+        counts0 = _frame_counts(diag)
         cpu0 = _cpu_seconds(pid)
         t0 = time.monotonic()
         for k, data in enumerate(images):
@@ -112,7 +114,9 @@ def main(argv: list[str] | None = None) -> int:
                "processing_ms_median": diag.get("processing_time_ms_median"),
                # which frames got no odometry (dropped while busy, held, lost): a start-up
                # phase shows as the first indices
-               "missing_frames": [k for k, s in enumerate(sent) if s not in got]}
+               "missing_frames": [k for k, s in enumerate(sent) if s not in got],
+               # the node's own counts over this run (diagnostics): why frames are missing
+               "node_frames": {k: n - counts0.get(k, 0) for k, n in _frame_counts(diag).items()}}
         results.append(row)
         print(json.dumps(row))
     if args.json:
@@ -121,6 +125,14 @@ def main(argv: list[str] | None = None) -> int:
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
+
+
+FRAME_COUNTS = ("received", "processed", "dropped", "held", "skipped", "bad", "time_resets")
+
+
+def _frame_counts(diag: dict[str, str]) -> dict[str, int]:
+    """The node's frame counters from its last diagnostics (empty before any)."""
+    return {k: int(diag[k]) for k in FRAME_COUNTS if diag.get(k, "").isdigit()}
 
 
 def _find_pid(name: str) -> int | None:
