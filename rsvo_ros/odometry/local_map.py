@@ -218,8 +218,8 @@ class LocalMap:
                     dropped += 1
                 else:
                     moved.setdefault(k, []).append(n)
-            for k, rows in moved.items():  # vectorized per new anchor (held the GIL for
-                kf = self.keyframes[k]  # 40 ms a keyframe at 1280x720 landmark by landmark)
+            for k, rows in moved.items():  # vectorized per new anchor (landmark by landmark
+                kf = self.keyframes[k]  # it held the GIL 20-50 ms a keyframe at 1280x720)
                 at = np.array([self._index[kf.id][int(ids[n])] for n in rows], np.int64)
                 R, p = row_cameras(kf, kf.obs.s[at])
                 depth = np.einsum("nji,nj->ni", R, X[rows] - p)[:, 2]
@@ -266,7 +266,7 @@ class LocalMap:
         kf_pos = {kf.id: k for k, kf in enumerate(self.keyframes)}
         lm_anchor = np.array([kf_pos[self.landmarks[t].anchor] for t in lm_ids], np.int64)
         # each keyframe's observations of landmarks anchored elsewhere, not rejected there:
-        # vectorized (per observation in Python it held the GIL 7 ms a window at 1280x720)
+        # vectorized (per observation in Python it held the GIL 5 ms a window at 1280x720)
         lm_arr = np.array(lm_ids, np.int64)
         order = np.argsort(lm_arr, kind="stable")
         lm_sorted = lm_arr[order]
@@ -306,6 +306,8 @@ class LocalMap:
             sv = max(o.prior_v_rel * float(np.linalg.norm(v_t)), o.prior_v_floor)
             p2[k] = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2], 3)
         R, p, w, v = self._state_arrays()
+        anchor_rows = [self.keyframes[k].obs.rows[self._index[self.keyframes[k].id][t]]
+                       for k, t in zip(lm_anchor.tolist(), lm_ids, strict=True)]
         return WindowProblem(
             R, p, w, v, np.concatenate(obs_kf), np.concatenate(obs_lm),
             np.concatenate(obs_x).astype(float), np.concatenate(obs_s).astype(float), lm_anchor,
@@ -313,9 +315,7 @@ class LocalMap:
             np.array([self.landmarks[t].s for t in lm_ids]),
             np.array([self.landmarks[t].rho for t in lm_ids]), self.focal, o.robust_px, mu, p2,
             col, int((~held).sum()), lm_ids, obs_tid, np.concatenate(obs_rows).astype(float),
-            np.array([self.keyframes[lm_anchor[j]].obs.rows[
-                self._index[self.landmarks[t].anchor][t]] for j, t in enumerate(lm_ids)],
-                float))  # fmt: skip
+            np.array(anchor_rows, float))  # fmt: skip
 
     def set_row_times(self, row_time) -> None:
         """Recompute every observation's row time with ``row_time(rows)`` (another line delay),
