@@ -241,14 +241,18 @@ def estimate_relative_pose(
         return failed(f"too few inliers for a GS essential matrix ({int(mask.sum())})", mask,
                       iters)
     has_pose = np.linalg.norm(t) > 0
+    start = RSBatch.from_pose(R, t)
+
+    def gs_starts() -> GSStarts:
+        return GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed, min_inliers)
+
     start_scale = more_starts = None
     if model == "rs" and mode == "fast" and has_pose:
         # where even the tolerant GS fit leaves the points far off (strong RS distortion), the
         # search is global: its extra GS starts are fitted meanwhile, on other threads
-        start_scale = data_scale(RSBatch.from_pose(R, t), corr, np.inf)
+        start_scale = data_scale(start, corr, np.inf)
         if start_scale >= lm.local_scale_px:
-            more_starts = GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed,
-                                   min_inliers)
+            more_starts = gs_starts()
     parallax, R_rot = rotation_only_residual_px(corr, rng)
     # the noise of the model RANSAC fitted (an upper bound: RS distortion adds to it)
     e_fit = sampson_gs_px(E, corr.x_prev, corr.x_curr, corr.focal)
@@ -263,16 +267,14 @@ def estimate_relative_pose(
                       "both cameras", mask, iters)
 
     if model in ("gs", "mvo"):
-        gs_state = RSBatch.from_pose(R, t)
         e_gs = sampson_gs_px(essential(R, t), corr.x_prev, corr.x_curr, corr.focal)
-        depths_p, depths_c = depths(gs_state, corr)
+        depths_p, depths_c = depths(start, corr)
         return finish(RelativePoseResult(
             True, model, R, t, mask, iterations=iters, cost=float(np.mean(e_gs[mask] ** 2)),
             depths_prev=depths_p[0], depths_curr=depths_c[0],
-            covariance=pose_covariance(gs_state, corr.subset(mask), gs_only=True),
+            covariance=pose_covariance(start, corr.subset(mask), gs_only=True),
         ))  # fmt: skip
 
-    start = RSBatch.from_pose(R, t)
     null_start = None
     if mode == "fast":
         # the best GS fit (as model="gs"), where the model without free velocities starts;
@@ -293,10 +295,9 @@ def estimate_relative_pose(
         local = None if predicted is None else RSBatch.from_pose(*predicted)
 
         def starts() -> RSBatch:  # the global search's: several GS fits and a rotation fit
-            extra = more_starts or GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed,
-                                            min_inliers)
-            found = [start] + ([] if null_start is start else [null_start]) + extra.result(
-                ) + [rotation_start(corr, R_rot)] + ([] if local is None else [local])
+            extra = (more_starts or gs_starts()).result()
+            found = [start] + ([] if null_start is start else [null_start]) + extra + [
+                rotation_start(corr, R_rot)] + ([] if local is None else [local])
             return RSBatch(*(np.concatenate([getattr(s, f) for s in found])
                              for f in ("R", "t", "vel")))  # fmt: skip
 

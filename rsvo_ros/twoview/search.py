@@ -439,9 +439,8 @@ class GSStarts:
     caller goes on with the rotation and null fits (OpenCV releases the GIL; the four fits
     take ~3 ms on one core): the RS distortion makes GS fits depend on the threshold and on
     which rows they see, and at strong distortion any one of them can be several degrees off.
-    Fits with
-    ``lm.init_thresholds_px`` on all points and with ``ransac.init_threshold_px`` on three row
-    bands. :meth:`result` waits for them; :meth:`cancel` drops those not started."""
+    Fits with ``lm.init_thresholds_px`` on all points and with ``ransac.init_threshold_px`` on
+    three row bands. :meth:`result` waits for them; :meth:`cancel` drops those not started."""
 
     def __init__(self, corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacOptions,
                  lm: LMOptions, seed: int, min_inliers: int) -> None:
