@@ -241,7 +241,7 @@ def estimate_relative_pose(
         return failed(f"too few inliers for a GS essential matrix ({int(mask.sum())})", mask,
                       iters)
     has_pose = np.linalg.norm(t) > 0
-    start = RSBatch.from_pose(R, t)
+    start = RSBatch.from_pose(R, t) if has_pose else None  # (a zero t: no pose, failed below)
 
     def gs_starts() -> GSStarts:
         return GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed, min_inliers)
