@@ -98,6 +98,7 @@ class WindowProblem:
     obs_tid: list = field(default_factory=list)
     obs_rows: np.ndarray | None = None  # (n,) sensor rows of the observations
     lm_rows: np.ndarray | None = None  # (M,) sensor rows of the landmarks' anchor observations
+    stamps: np.ndarray | None = None
 
 
 @dataclass
@@ -315,7 +316,8 @@ class LocalMap:
             np.array([self.landmarks[t].s for t in lm_ids]),
             np.array([self.landmarks[t].rho for t in lm_ids]), self.focal, o.robust_px, mu, p2,
             col, int((~held).sum()), lm_ids, obs_tid, np.concatenate(obs_rows).astype(float),
-            np.array(anchor_rows, float))  # fmt: skip
+            np.array(anchor_rows, float),
+            np.array([kf.state.stamp_ns for kf in self.keyframes], np.int64))  # fmt: skip
 
     def set_row_times(self, row_time) -> None:
         """Recompute every observation's row time with ``row_time(rows)`` (another line delay),

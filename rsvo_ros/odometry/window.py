@@ -289,6 +289,8 @@ class WindowOdometry:
         result.ba_moved = [moved for moved, _ in self._picked] + result.ba_moved
         if result.ba is None and self._picked:
             result.ba = self._picked[-1][1]
+        if self.calibrator is not None and result.status == "posed" and result.state is not None:
+            self.calibrator.add_pose(result.state)
         return result
 
     def _newest_keyframe(self) -> KeyFrame | None:
