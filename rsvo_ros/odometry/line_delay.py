@@ -115,9 +115,13 @@ class LineDelayCalibrator:
 
     def add_pose(self, state: FrameState) -> None:
         """A tracked frame's pose (for the keyframes' velocities from the trajectory)."""
-        if self._poses and state.stamp_ns <= self._poses[-1][0]:
-            return  # not after the last one (a reset starts a new calibrator)
-        self._poses.append((state.stamp_ns, state.R.copy(), state.p.copy()))
+        pose = (state.stamp_ns, state.R.copy(), state.p.copy())
+        if self._poses and state.stamp_ns < self._poses[-1][0]:
+            self._poses = [pose]  # time went back (a looped bag): a new trajectory
+            return
+        if self._poses and state.stamp_ns == self._poses[-1][0]:
+            return
+        self._poses.append(pose)
         if len(self._poses) > 4096 and self.windows:  # keep what the kept windows need
             oldest = int(self.windows[0].problem.stamps[0]) if \
                 self.windows[0].problem.stamps is not None else state.stamp_ns

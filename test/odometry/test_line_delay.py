@@ -155,3 +155,7 @@ def test_keyframe_velocities_come_from_a_spline_through_the_tracked_frames():
     (_, R_a, _), (_, R_b, _) = cal._poses[4], cal._poses[6]
     central = np.arccos(np.clip((np.trace(R_a.T @ R_b) - 1) / 2, -1, 1)) / (2 * dt)
     assert central < 0.5 * w_true
+    # time going back (a looped bag) starts a new trajectory; a repeated stamp is ignored
+    cal.add_pose(FrameState(round(0.5e9), np.eye(3), np.zeros(3)))
+    cal.add_pose(FrameState(round(0.5e9), np.eye(3), np.ones(3)))
+    assert len(cal._poses) == 1 and (cal._poses[0][2] == 0).all()
