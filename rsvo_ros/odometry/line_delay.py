@@ -122,10 +122,10 @@ class LineDelayCalibrator:
         if self._poses and state.stamp_ns == self._poses[-1][0]:
             return
         self._poses.append(pose)
-        if len(self._poses) > 4096 and self.windows:  # keep what the kept windows need
-            oldest = int(self.windows[0].problem.stamps[0]) if \
-                self.windows[0].problem.stamps is not None else state.stamp_ns
-            self._poses = [q for q in self._poses if q[0] >= oldest - 1_000_000_000]
+        if len(self._poses) > 4096:  # keep what the kept windows need, else the newest half
+            first = self.windows[0].problem.stamps if self.windows else None
+            keep = int(first[0]) - 1_000_000_000 if first is not None else self._poses[-2048][0]
+            self._poses = [q for q in self._poses if q[0] >= keep]
 
     def add_window(self, prob: WindowProblem, row_ref: float) -> bool:
         """Keep a BA problem (its observations' sensor rows, ``row_ref`` the rows' origin of

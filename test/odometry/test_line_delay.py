@@ -159,3 +159,6 @@ def test_keyframe_velocities_come_from_a_spline_through_the_tracked_frames():
     cal.add_pose(FrameState(round(0.5e9), np.eye(3), np.zeros(3)))
     cal.add_pose(FrameState(round(0.5e9), np.eye(3), np.ones(3)))
     assert len(cal._poses) == 1 and (cal._poses[0][2] == 0).all()
+    for k in range(5000):  # memory stays bounded, windows or not
+        cal.add_pose(FrameState(round(1e9 + k * dt * 1e9), np.eye(3), np.zeros(3)))
+    assert 2048 <= len(cal._poses) <= 4096
