@@ -151,41 +151,49 @@ class LineDelayCalibrator:
                 and self._since_estimate >= (o.min_windows if self._grid_interval_s is None
                                              else o.reestimate_every))  # fmt: skip
 
+    def _trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The tracked poses as arrays: stamps (N,) ns, R (N, 3, 3), p (N, 3)."""
+        poses = list(self._poses)  # replaced whole when trimmed: a consistent snapshot
+        if not poses:
+            return np.zeros(0, np.int64), np.zeros((0, 3, 3)), np.zeros((0, 3))
+        stamps, R, p = zip(*poses, strict=True)
+        return np.array(stamps, np.int64), np.array(R), np.array(p)
+
     def _trajectory_velocities(self, pr: WindowProblem,
-                               poses: list[tuple[int, np.ndarray, np.ndarray]]) -> np.ndarray:
-        """(K, 6) the keyframes' ``(w, v)`` from the tracked trajectory: the derivative at the
-        keyframe of a cubic spline through the frames around it, in the keyframe's frame; the
-        window's own prior (the neighbours' central difference) where the trajectory has no
-        frames enough around it or a gap."""
+                               trajectory: tuple[np.ndarray, np.ndarray, np.ndarray]
+                               ) -> np.ndarray:  # fmt: skip
+        """(K, 6) the keyframes' ``(w, v)`` from the tracked trajectory (:meth:`_trajectory`):
+        the derivative at the keyframe of a cubic spline through the frames around it, in the
+        keyframe's frame; the window's own prior (the neighbours' central difference) where the
+        trajectory has no frames enough around it or a gap."""
         mu = pr.prior_mu.copy()
         half = self.options.spline_half_width
-        if half <= 0 or pr.stamps is None or len(poses) < 2 * half + 1:
+        stamps, Rs, ps = trajectory
+        if half <= 0 or pr.stamps is None or len(stamps) < 2 * half + 1:
             return mu
-        stamps = np.array([q[0] for q in poses], np.int64)
         interval = float(np.median(np.diff(stamps)))
         for k, stamp in enumerate(pr.stamps):
             i = int(np.searchsorted(stamps, stamp))
             if pr.prior_p2[k, 0] <= 0 or i - half < 0 or i + half >= len(stamps) \
                     or stamps[i] != stamp:  # fmt: skip
                 continue
-            near = poses[i - half:i + half + 1]
-            t = (stamps[i - half:i + half + 1] - stamp) * 1e-9
+            near = slice(i - half, i + half + 1)
+            t = (stamps[near] - stamp) * 1e-9
             if t[-1] - t[0] > (2 * half + 1) * interval * 1e-9:
                 continue  # a gap (dropped or lost frames)
-            R_k, p_k = poses[i][1], poses[i][2]
-            phi = np.array([so3_log(R_k.T @ R) for _, R, _ in near])
-            dp = np.array([p - p_k for _, _, p in near])
+            R_k = Rs[i]
+            phi = so3_log(R_k.T @ Rs[near])
             w = CubicSpline(t, phi, axis=0)(0.0, 1)
-            v = R_k.T @ CubicSpline(t, dp, axis=0)(0.0, 1)
+            v = R_k.T @ CubicSpline(t, ps[near] - ps[i], axis=0)(0.0, 1)
             if np.isfinite(w).all() and np.isfinite(v).all():
                 mu[k] = np.concatenate([w, v])
         return mu
 
     def _costs(self, win: _Window, taus: np.ndarray,
-               poses: list[tuple[int, np.ndarray, np.ndarray]]) -> np.ndarray:
+               trajectory: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
         o = self.options
         pr = win.problem
-        mu = self._trajectory_velocities(pr, poses)
+        mu = self._trajectory_velocities(pr, trajectory)
         p2 = pr.prior_p2.copy()
         has = p2[:, 0] > 0
         speed = np.linalg.norm(mu[:, 3:], axis=1)
@@ -221,10 +229,10 @@ class LineDelayCalibrator:
                 win.costs = None
         fracs = np.asarray(o.readout_grid, float)
         taus = fracs * self._grid_interval_s / self.height
-        poses = list(self._poses)
+        trajectory = self._trajectory()  # once for all the windows
         for win in windows:
             if win.costs is None:
-                win.costs = self._costs(win, taus, poses)
+                win.costs = self._costs(win, taus, trajectory)
         C = np.array([w.costs for w in windows])
         ok = np.isfinite(C).all(axis=1)
         C = C[ok]

@@ -98,7 +98,7 @@ class WindowProblem:
     obs_tid: list = field(default_factory=list)
     obs_rows: np.ndarray | None = None  # (n,) sensor rows of the observations
     lm_rows: np.ndarray | None = None  # (M,) sensor rows of the landmarks' anchor observations
-    stamps: np.ndarray | None = None
+    stamps: np.ndarray | None = None  # (K,) the keyframes' stamps (ns)
 
 
 @dataclass

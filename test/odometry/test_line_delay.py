@@ -148,7 +148,7 @@ def test_keyframe_velocities_come_from_a_spline_through_the_tracked_frames():
     window_prior = np.full((2, 6), 7.0)
     prob = SimpleNamespace(stamps=np.array([round(1e9), round((1.0 + 3 * dt) * 1e9)]),
                            prior_mu=window_prior, prior_p2=np.ones((2, 6)))
-    mu = cal._trajectory_velocities(prob, list(cal._poses))
+    mu = cal._trajectory_velocities(prob, cal._trajectory())
     assert mu[0, 1] == pytest.approx(w_true, rel=0.25) and abs(mu[0, [0, 2]]).max() < 1e-6
     assert mu[0, 3] == pytest.approx(v_true, rel=0.25)
     assert (mu[1] == 7.0).all()  # the newest frame: no frames after it yet
