@@ -245,17 +245,11 @@ class LineDelayCalibrator:
             base.reason = (f"too little rotation (median {w_med:.3f} rad/s at the keyframes)"
                            if w_med < o.min_rotation_rad_s else "too few usable windows")
             return base
-        f_best = _parabola_min(fracs, total)
+        f_best, std_f = grid_minimum(fracs, C, o.bootstrap, o.seed)
         if f_best is None:
             base.status = "not observable"
             base.reason = "the cost has no minimum inside the readout grid"
             return base
-        rng = np.random.default_rng(o.seed)
-        boot = []
-        for _ in range(o.bootstrap):
-            f = _parabola_min(fracs, C[rng.integers(0, len(C), len(C))].sum(axis=0))
-            boot.append(fracs[-1] if f is None else f)
-        std_f = float(np.std(boot))
         scale = self._grid_interval_s / self.height
         base.status = "estimated"
         base.readout_fraction, base.std_fraction = f_best, std_f
@@ -269,7 +263,23 @@ class LineDelayCalibrator:
         return base
 
 
-def _parabola_min(x: np.ndarray, y: np.ndarray) -> float | None:
+def grid_minimum(x: np.ndarray, costs: np.ndarray, bootstrap: int,
+                 seed: int = 0) -> tuple[float | None, float]:  # fmt: skip
+    """The minimum over the even grid ``x`` of the summed cost curves ``costs`` (M, len(x))
+    (:func:`parabola_min`; None at the top edge) and its bootstrap std over the M curves (a
+    resample whose minimum is at the top edge counts as the top edge)."""
+    best = parabola_min(x, costs.sum(axis=0))
+    if best is None or bootstrap <= 0:
+        return best, float("nan")
+    rng = np.random.default_rng(seed)
+    boot = []
+    for _ in range(bootstrap):
+        f = parabola_min(x, costs[rng.integers(0, len(costs), len(costs))].sum(axis=0))
+        boot.append(x[-1] if f is None else f)
+    return best, float(np.std(boot))
+
+
+def parabola_min(x: np.ndarray, y: np.ndarray) -> float | None:
     """The minimum of ``y(x)`` on an even grid, refined by a parabola through its neighbours;
     the first grid point when the minimum is there (zero line delay), None at the last one."""
     j = int(np.argmin(y))

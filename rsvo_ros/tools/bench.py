@@ -295,9 +295,12 @@ def build_parser() -> argparse.ArgumentParser:
                       help="evaluate every model on realistic synthetic pairs (smooth motion, "
                            "readout = frame interval, lens, KLT noise): the tuning seeds and "
                            "the held-out seeds; --trials limits the pairs per group")
-    real.add_argument("--readout", type=float, default=realpairs.DEFAULT_READOUT,
-                      metavar="R", help="readout time in frame intervals (default "
-                                        "%(default)s: the BS-RSC code's assumption)")
+    real.add_argument("--readout", type=_readout, default=realpairs.DEFAULT_READOUT,
+                      metavar="R|auto", help="readout time in frame intervals (default "
+                                             "%(default)s: the BS-RSC code's assumption); "
+                                             "auto: also estimate it from the RS tracks alone "
+                                             "and report the unrolling with it (the evaluation "
+                                             "keeps the default)")
     real.add_argument("--focal", type=float, default=None, metavar="PX",
                       help="focal length in pixels (default: the image width)")
     return p
@@ -317,6 +320,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, group in report["groups"].items():
             print(f"\n== realistic synthetic pairs, {name} seeds {group['seeds'][0]}-"
                   f"{group['seeds'][1]} ==\n{group['table']}")
+            _print_auto(group.get("readout_auto"), f"{name} seeds")
         print(f"\nwrote {args.output / 'realistic.json'}")
         return 0
     levels = sorted(set(args.levels))
@@ -344,6 +348,32 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _readout(text: str) -> float | str:
+    """``--readout``: ``auto`` or a number of frame intervals >= 0."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a number, got {text!r}") from None
+    if not (np.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be finite and >= 0, got {text!r}")
+    return value
+
+
+def _print_auto(auto: dict | None, label: str) -> None:
+    if auto is None:
+        return
+    per = ", ".join(f"{k} {'-' if v is None else format(v, '.2f')}"
+                    for k, v in auto["per_pair"].items())
+    un = auto["unroll_px_median_estimate"]
+    print(f"\n{label}: readout from the RS tracks alone: {auto['status']} ({auto['reason']}); "
+          f"per pair: {per}. Stream-mode unrolling, median: "
+          f"{'-' if un is None else format(un, '.2f')} px with the estimate, "
+          f"{auto['unroll_px_median_assumed']:.2f} px with {auto['assumed_readout']:g} frame "
+          f"intervals, {auto['nothing_px_median']:.2f} px doing nothing")
+
+
 def _main_real(args) -> int:
     try:
         report = realpairs.run(args.real, args.output, readout=args.readout, focal=args.focal,
@@ -352,7 +382,9 @@ def _main_real(args) -> int:
         print(f"rsvo_bench: {exc}", file=sys.stderr)
         return 2
     print(report["table"])
-    print(f"\n{len(report['pairs'])} real pairs, readout {args.readout:g} frame intervals; "
+    _print_auto(report["readout_auto"], "real pairs")
+    print(f"\n{len(report['pairs'])} real pairs, readout "
+          f"{report['readout_frame_intervals']:g} frame intervals; "
           f"wrote {args.output / 'real.json'} and {args.output / 'real_pairs.png'}")
     return 0
 

@@ -18,6 +18,8 @@ Per pair:
 
 K is a guess (``f`` = image width, principal point at the centre); the line delay is
 ``readout x frame_interval / height`` (the dataset's assumption: readout = frame interval).
+``--readout auto`` also reports the readout estimated from the RS tracks alone
+(:func:`estimate_readout`) and the unrolling error with it.
 """
 
 from __future__ import annotations
@@ -30,9 +32,13 @@ import cv2
 import numpy as np
 
 from rsvo_ros.core.geometry import angle_between_deg, pose_at_row, rotation_angle_deg, so3_exp
+from rsvo_ros.odometry.line_delay import LineDelayOptions, grid_minimum, parabola_min
 from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.sim.realistic import HELD_OUT_SEEDS, TUNING_SEEDS, realistic_pair
-from rsvo_ros.twoview import estimate_relative_pose
+from rsvo_ros.twoview import LMOptions, estimate_relative_pose
+from rsvo_ros.twoview.search import constant_velocity
+from rsvo_ros.twoview.solver import cauchy_cost, levenberg_marquardt, residuals
+from rsvo_ros.twoview.state import NUM_PARAMS, RSBatch, make_correspondences
 
 PAIR_FILES = ("rs_0.png", "rs_1.png", "gs_0_m.png", "gs_1_m.png")
 DEFAULT_FRAME_INTERVAL_S = 1.0 / 30.0  # only the ratio readout / interval matters
@@ -275,6 +281,87 @@ def summarize(results: list[MethodResult]) -> dict:
     return summary
 
 
+@dataclass
+class ReadoutEstimate:
+    """The readout (frame intervals) estimated from the RS tracks of several pairs alone.
+
+    ``status``: "estimated", or "not observable" (the pooled cost has no minimum inside the
+    grid, or the pairs disagree: bootstrap std over the pairs above :data:`MAX_READOUT_STD`)."""
+
+    status: str
+    readout: float | None
+    std: float
+    per_pair: dict[str, float | None]  # each pair's own minimum
+    curve: list[tuple[float, float]]  # (readout, mean cost per point, px^2) pooled
+    reason: str = ""
+
+
+MAX_READOUT_STD = 0.25  # frame intervals: pairs that scatter more than this do not agree
+
+
+def readout_curve(tracks: PairTracks, grid: np.ndarray, frame_interval: float,
+                  robust_scale: float | None = None, rounds: int = 6) -> np.ndarray:  # fmt: skip
+    """Mean Cauchy cost per point (px^2) of the pair's constant-velocity fit for each readout
+    of ``grid`` (frame intervals): the pose (5 DOF, from OpenCV's USAC_MAGSAC) refined with
+    both frames' velocities held to the motion between the frames over ``frame_interval``
+    (re-centred ``rounds`` times). The RS distortion is then fixed by the readout alone, as in
+    the line-delay calibration of a video (:mod:`rsvo_ros.odometry.line_delay`); only the
+    ratio readout / interval matters."""
+    p0, p1 = tracks.pts
+    rows = tracks.rows if tracks.rows is not None else (None, None)
+    K = tracks.K
+    height = 2.0 * K[1, 2] + 1.0
+    scale = robust_scale or LMOptions().robust_scale_px
+    R, t, _ = opencv_magsac(p0, p1, K)
+    if not np.linalg.norm(t) > 0:
+        return np.full(len(grid), np.nan)
+    out = []
+    for f in grid:
+        corr = make_correspondences(p0, p1, K, f * frame_interval / height, K[1, 2], *rows)
+        state = RSBatch.from_pose(R, t)
+        for _ in range(rounds):
+            state.vel = constant_velocity(state, frame_interval)
+            state, _, _ = levenberg_marquardt(state, corr, 10, robust_scale=scale,
+                                              basis=np.eye(NUM_PARAMS)[:, :5])
+        state.vel = constant_velocity(state, frame_interval)
+        out.append(float(cauchy_cost(residuals(state, corr), scale)[0]) / len(p0))
+    return np.array(out)
+
+
+def estimate_readout(tracks: list[PairTracks],
+                     frame_interval: float = DEFAULT_FRAME_INTERVAL_S,
+                     grid: tuple[float, ...] | None = None, bootstrap: int = 200,
+                     seed: int = 0) -> ReadoutEstimate:  # fmt: skip
+    """The readout of least pooled :func:`readout_curve` cost over the pairs (a parabola
+    through the grid's minimum; the bootstrap over the pairs gives its std). The candidates are
+    the line-delay calibration's (``LineDelayOptions.readout_grid``).
+
+    A diagnostic, not a calibration: with the same velocity in both frames their distortions
+    nearly cancel in the relative pose, so the cost is flat to a few per cent over the grid,
+    and on the realistic pairs (rendered with readout 1.0) the pooled minimum is near 0
+    (README). The video calibration (``line_delay: auto``) has many frames whose velocities
+    differ."""
+    x = np.asarray(grid or LineDelayOptions().readout_grid, float)
+    curves = [readout_curve(tr, x, frame_interval) for tr in tracks]
+    ok = [i for i, c in enumerate(curves) if np.isfinite(c).all()]
+    per_pair = {tracks[i].name: parabola_min(x, curves[i]) for i in ok}
+    if not ok:
+        return ReadoutEstimate("not observable", None, float("nan"), per_pair, [],
+                               "no pair has a GS pose to start from")
+    C = np.array([curves[i] for i in ok])
+    curve = [(float(f), float(c)) for f, c in zip(x, C.mean(axis=0), strict=True)]
+    best, std = grid_minimum(x, C, bootstrap, seed)
+    if best is None:
+        return ReadoutEstimate("not observable", None, std, per_pair, curve,
+                               "the pooled cost has no minimum inside the readout grid")
+    if len(ok) < 2 or not std <= MAX_READOUT_STD:
+        return ReadoutEstimate("not observable", best, std, per_pair, curve,
+                               f"the pairs disagree: {best:.2f} +- {std:.2f} frame intervals "
+                               f"over {len(ok)} pair(s)")
+    return ReadoutEstimate("estimated", best, std, per_pair, curve,
+                           f"{best:.2f} +- {std:.2f} frame intervals over {len(ok)} pairs")
+
+
 def _f(x, spec=".3f"):
     return "-" if x is None else format(x, spec)
 
@@ -349,21 +436,50 @@ def plot(path: Path, pairs: list[RealPair], tracks: list[PairTracks], readout: f
     plt.close(fig)
 
 
-def run(root: Path, output: Path, readout: float = DEFAULT_READOUT,
+def _auto_report(est: ReadoutEstimate, tracks: list[PairTracks], assumed: float,
+                 frame_interval: float, seed: int) -> dict:  # fmt: skip
+    """The estimate, and the stream mode's unrolling (pooled median, px) with it and with the
+    assumed readout."""
+    out = asdict(est) | {"assumed_readout": assumed}
+    method = "ours rs, stream"
+    for key, readout in (("estimate", est.readout), ("assumed", assumed)):
+        if readout is None:
+            out[f"unroll_px_median_{key}"] = None
+            continue
+        res = [r for tr in tracks for r in evaluate_pair(tr, readout, frame_interval, seed)
+               if r.method == method]
+        out[f"unroll_px_median_{key}"] = float(np.median(sum((r.unroll_px for r in res), [])))
+        out["nothing_px_median"] = float(np.median(sum((r.nothing_px for r in res), [])))
+    return out
+
+
+def run(root: Path, output: Path, readout: float | str = DEFAULT_READOUT,
         frame_interval: float = DEFAULT_FRAME_INTERVAL_S, focal: float | None = None,
         seed: int = 0, draw: bool = True) -> dict:  # fmt: skip
     """Evaluate every pair of ``root``; writes ``real.json`` (and ``real_pairs.png``) into
-    ``output`` and returns the report."""
-    if not (np.isfinite(readout) and readout >= 0):
-        raise ValueError(f"readout must be finite and >= 0 frame intervals, got {readout}")
+    ``output`` and returns the report. ``readout="auto"``: also estimated from the RS tracks
+    alone (:func:`estimate_readout`); ``report["readout_auto"]`` holds the estimate and the
+    stream mode's unrolling error with it and with the assumed :data:`DEFAULT_READOUT`, which
+    the evaluation keeps (two frames barely observe the readout: see
+    :func:`estimate_readout`)."""
+    auto = readout == "auto"
+    if not auto and not (isinstance(readout, (int, float)) and np.isfinite(readout)
+                         and readout >= 0):  # fmt: skip
+        raise ValueError(f"readout must be 'auto' or finite and >= 0 frame intervals, got "
+                         f"{readout!r}")
     if not (np.isfinite(frame_interval) and frame_interval > 0):
         raise ValueError(f"frame interval must be > 0 s, got {frame_interval}")
     pairs = load_pairs(root)
     tracks = [prepare(p, focal) for p in pairs]
+    auto_report = None
+    if auto:
+        est = estimate_readout(tracks, frame_interval, seed=seed)
+        auto_report = _auto_report(est, tracks, DEFAULT_READOUT, frame_interval, seed)
+        readout = DEFAULT_READOUT
     results = [r for tr in tracks for r in evaluate_pair(tr, readout, frame_interval, seed)]
     summary = summarize(results)
     report = {
-        "root": str(root), "readout_frame_intervals": readout,
+        "root": str(root), "readout_frame_intervals": readout, "readout_auto": auto_report,
         "frame_interval_s": frame_interval, "focal_px": focal, "seed": seed,
         "pairs": [{"name": t.name, "tracks": len(t.pts[0]), "ref_tracks": t.ref_tracks,
                    "ref_inlier_ratio": t.ref_inlier_ratio,
@@ -388,20 +504,28 @@ def run(root: Path, output: Path, readout: float = DEFAULT_READOUT,
 
 
 def run_realistic(output: Path, count: int | None = None, seed: int = 0,
-                  readout: float = DEFAULT_READOUT) -> dict:  # fmt: skip
+                  readout: float | str = DEFAULT_READOUT) -> dict:  # fmt: skip
     """Every method on the realistic synthetic pairs: the tuning seeds and the held-out seeds,
-    summarized separately; writes ``realistic.json`` into ``output``."""
+    summarized separately; writes ``realistic.json`` into ``output``. ``readout="auto"``: the
+    pairs are rendered with :data:`DEFAULT_READOUT` and each group also reports the readout
+    estimated from its RS tracks (:func:`estimate_readout`) against it."""
     import json
 
     groups = {"tuning": list(TUNING_SEEDS), "held-out": list(HELD_OUT_SEEDS)}
+    auto = readout == "auto"
+    readout = DEFAULT_READOUT if auto else readout  # the truth the pairs are rendered with
     report = {"readout_frame_intervals": readout, "groups": {}}
     for name, seeds in groups.items():
         seeds = seeds[:count] if count else seeds
-        results = [r for s in seeds
-                   for r in evaluate_pair(realistic_tracks(s, readout), readout, seed=seed)]
+        tracks = [realistic_tracks(s, readout) for s in seeds]
+        results = [r for tr in tracks for r in evaluate_pair(tr, readout, seed=seed)]
         summary = summarize(results)
         report["groups"][name] = {"seeds": [seeds[0], seeds[-1]], "summary": summary,
                                   "table": format_tables(results, summary).split("\n\n")[0]}
+        if auto:  # the estimate from the RS tracks alone, against the rendered readout
+            report["groups"][name]["readout_auto"] = _auto_report(
+                estimate_readout(tracks, seed=seed), tracks, readout,
+                DEFAULT_FRAME_INTERVAL_S, seed)
     output.mkdir(parents=True, exist_ok=True)
     with open(output / "realistic.json", "w") as f:
         json.dump(report, f, indent=1)

@@ -15,7 +15,7 @@ from rsvo_ros.odometry.line_delay import (
     LineDelayCalibrator,
     LineDelayEstimate,
     LineDelayOptions,
-    _parabola_min,
+    parabola_min,
 )
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
@@ -46,9 +46,9 @@ def auto_50():
 
 def test_parabola_minimum():
     x = np.arange(0, 1.01, 0.1)
-    assert _parabola_min(x, (x - 0.43) ** 2) == pytest.approx(0.43)
-    assert _parabola_min(x, x) == 0.0  # at zero: a global shutter
-    assert _parabola_min(x, -x) is None  # at the top edge: not trusted
+    assert parabola_min(x, (x - 0.43) ** 2) == pytest.approx(0.43)
+    assert parabola_min(x, x) == 0.0  # at zero: a global shutter
+    assert parabola_min(x, -x) is None  # at the top edge: not trusted
 
 
 def test_auto_finds_the_line_delay_of_a_shaken_walk_and_keeps_its_accuracy(auto_50):

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT
 
-from rsvo_ros.core.geometry import rotation_angle_deg
+from rsvo_ros.core.geometry import rotation_angle_deg, so3_exp
 from rsvo_ros.estimation import estimate_relative_pose
 from rsvo_ros.sim.realistic import realistic_pair
+from rsvo_ros.sim.synth import project_points
 from rsvo_ros.tools import realpairs
 from rsvo_ros.tools.bench import main
 
@@ -152,3 +153,54 @@ def test_realpairs_reads_color_images(tmp_path):
         cv2.imwrite(str(dst / name), cv2.resize(img, (512, 384)))
     pairs = realpairs.load_pairs(tmp_path / "one")
     assert [p.name for p in pairs] == ["mine"] and pairs[0].shape == (384, 512)
+
+
+def _constant_velocity_tracks(readout: float, frame_interval: float = 1 / 30,
+                              n: int = 400) -> realpairs.PairTracks:  # fmt: skip
+    """Noise-free RS tracks of a camera turning and moving at one constant velocity through
+    both frames, exposed with ``readout`` frame intervals."""
+    rng = np.random.default_rng(3)
+    width, height = 640, 480
+    K = realpairs.intrinsics_guess(width, height)
+    w, v = np.array([0.9, -1.2, 0.5]), np.array([1.0, 0.2, 3.0])  # rad/s, m/s
+    tau = readout * frame_interval / height
+    X = rng.uniform([-4, -3, 2], [4, 3, 8], (n, 3))
+
+    def row_pose(k):
+        def pose(rows):
+            t = k * frame_interval + np.asarray(rows, float) * tau
+            return so3_exp(t[:, None] * w), t[:, None] * v
+
+        return pose
+
+    p0, p1 = (project_points(X, row_pose(k), K, height) for k in (0, 1))
+    ok = np.isfinite(p0).all(1) & np.isfinite(p1).all(1)
+    pts = (p0[ok], p1[ok])
+    return realpairs.PairTracks("constant velocity", K, pts, pts, np.eye(3), np.zeros(3), 1.0, 0)
+
+
+def test_readout_from_two_frames_finds_an_exact_constant_velocity_readout():
+    for truth in (0.3, 0.9):
+        est = realpairs.estimate_readout([_constant_velocity_tracks(truth)], bootstrap=0)
+        assert est.readout == pytest.approx(truth, abs=0.1)
+        assert est.status == "not observable" and "1 pair" in est.reason  # one pair: no spread
+
+
+def test_readout_auto_on_real_pairs_reports_the_estimate_and_keeps_the_assumed(tmp_path,
+                                                                                capsys):
+    assert main(["--real", str(REAL), "--readout", "auto", "--output", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "real.json").read_text())
+    auto = report["readout_auto"]
+    assert report["readout_frame_intervals"] == realpairs.DEFAULT_READOUT
+    assert set(auto["per_pair"]) == {f"pair_{i}" for i in range(4)}
+    costs = np.array([c for _, c in auto["curve"]])
+    assert len(costs) == len(realpairs.LineDelayOptions().readout_grid)
+    # the README's finding: the pooled cost of two smooth real frames is nearly flat in the
+    # readout and the pairs disagree, so the estimate is not trusted
+    assert costs.max() < 1.05 * costs.min()
+    assert auto["status"] == "not observable" and "disagree" in auto["reason"]
+    assert np.isfinite([auto["unroll_px_median_assumed"], auto["nothing_px_median"]]).all()
+    assert "readout from the RS tracks alone" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as bad:
+        main(["--real", str(REAL), "--readout", "soon", "--output", str(tmp_path)])
+    assert bad.value.code == 2 and "expected 'auto' or a number" in capsys.readouterr().err
