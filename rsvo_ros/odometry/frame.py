@@ -2,9 +2,10 @@
 
 Convention (CONTRACTS.md, re-expressed at the reference row ``row_ref``, the principal point's
 row): ``R``, ``p`` are ``T_world_camera`` of the camera that exposed row ``row_ref``; ``w``
-(rad/s) and ``v`` (map units/s) its instantaneous motion in its own frame; the camera of row
-``r`` is that one moved by ``s = (r - row_ref) tau`` seconds of it (``R Exp(s w)``,
-``p + R s v``). Pure numpy.
+(rad/s) and ``v`` (map units/s) its instantaneous motion in its own frame, ``a`` (rad/s^2) the
+change of its turn rate; the camera of row ``r`` is that one moved by ``s = (r - row_ref) tau``
+seconds of it (``R Exp(s w + s^2/2 a)``, ``p + R s v``; see
+:mod:`rsvo_ros.odometry.rs_projection`). Pure numpy.
 """
 
 from __future__ import annotations
@@ -25,14 +26,21 @@ class FrameState:
     p: np.ndarray  # (3,)
     w: np.ndarray = field(default_factory=lambda: np.zeros(3))  # rad/s, camera frame
     v: np.ndarray = field(default_factory=lambda: np.zeros(3))  # map units/s, camera frame
+    a: np.ndarray = field(default_factory=lambda: np.zeros(3))  # rad/s^2, camera frame
 
     def copy(self) -> FrameState:
         return FrameState(self.stamp_ns, self.R.copy(), self.p.copy(), self.w.copy(),
-                          self.v.copy())  # fmt: skip
+                          self.v.copy(), self.a.copy())  # fmt: skip
 
     def at(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         """``(R, p)`` of the camera ``s`` seconds of readout from the reference row."""
-        return self.R @ so3_exp(s * self.w), self.p + self.R @ (s * self.v)
+        return self.R @ so3_exp(s * (self.w + 0.5 * s * self.a)), self.p + self.R @ (s * self.v)
+
+    def row_cameras(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(R, p)`` (n, 3, 3), (n, 3) of the cameras at row times ``s`` (n,)."""
+        s = np.asarray(s, float)[:, None]
+        R = self.R @ so3_exp(s * (self.w + 0.5 * s * self.a))
+        return R, self.p + (s * self.v) @ self.R.T
 
     def pose(self, s: float = 0.0) -> np.ndarray:
         """(4, 4) ``T_world_camera`` of the camera at row time ``s`` (0: the reference row)."""
@@ -41,9 +49,10 @@ class FrameState:
         return T
 
     def row0_velocities(self, s0: float) -> tuple[np.ndarray, np.ndarray]:
-        """``(w, v)`` expressed in the row-0 camera (row time ``s0``), as CONTRACTS.md reports
-        them: ``w`` is unchanged (a rotation about its own axis), ``v`` rotates."""
-        return self.w.copy(), so3_exp(s0 * self.w).T @ self.v
+        """``(w, v)`` of the row-0 camera (row time ``s0``) in its own frame, as CONTRACTS.md
+        reports them: the turn rate there (``w + s0 a``; about its own axis, so the frame does
+        not change it), ``v`` rotated into that camera."""
+        return self.w + s0 * self.a, self.at(s0)[0].T @ self.R @ self.v
 
 
 @dataclass

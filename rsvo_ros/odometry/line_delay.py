@@ -202,9 +202,9 @@ class LineDelayCalibrator:
         out = np.empty(len(taus))
         for i, tau in enumerate(taus):
             q = WindowProblem(
-                pr.R, pr.p, mu[:, :3].copy(), mu[:, 3:].copy(), pr.obs_kf,
-                pr.obs_lm, pr.obs_x, win.obs_rows * tau, pr.lm_anchor, pr.lm_x,
-                win.lm_rows * tau, pr.rho, pr.focal, pr.robust_px, mu, p2, pr.col,
+                pr.R, pr.p, mu[:, :3].copy(), mu[:, 3:].copy(), np.zeros_like(pr.acc),
+                pr.obs_kf, pr.obs_lm, pr.obs_x, win.obs_rows * tau, pr.lm_anchor, pr.lm_x,
+                win.lm_rows * tau, pr.rho, pr.focal, pr.robust_px, mu, p2, pr.acc_p2, pr.col,
                 pr.n_cols)  # fmt: skip
             sol = solve_window(q, o.iterations)
             out[i] = sol.cost if np.isfinite(sol.cost) else np.inf

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rsvo_ros.core.geometry import so3_exp
 from rsvo_ros.odometry import rs_projection
 from rsvo_ros.odometry.frame import KeyFrame
 
@@ -49,6 +48,17 @@ class MapOptions:
     prior_w_rad_s: float = 0.3  # angular std (rad/s)
     prior_v_rel: float = 0.3  # linear std, relative to the neighbours' speed
     prior_v_floor: float = 0.05  # ... and at least this (map units/s)
+    # each frame's angular acceleration during its readout, in tracking and in the window BA
+    # (zero-mean prior of this std, rad/s^2). 0 (default): held at zero, the paper's constant
+    # velocity within a frame. 50 pays on hand-held video with strong shake and costs on
+    # smooth vehicle motion (README, "Angular acceleration during the readout")
+    prior_acc_rad_s2: float = 0.0
+
+
+def acc_prior_p2(std_rad_s2: float) -> float:
+    """The squared inverse std of the angular accelerations' zero-mean prior; 0 (a std of 0)
+    holds them where they are (tracking) and fixes their columns (the window BA)."""
+    return 1.0 / std_rad_s2**2 if std_rad_s2 > 0 else 0.0
 
 
 @dataclass
@@ -73,13 +83,14 @@ class BAReport:
 @dataclass
 class WindowProblem:
     """One window BA: the keyframes' states (K,), the observations (n,) of landmarks (M,)
-    with their anchors, the velocity priors, and the free parameters (``col`` (K, 12): the
+    with their anchors, the velocity priors, and the free parameters (``col`` (K, 15): the
     column of each frame parameter, -1 where held)."""
 
     R: np.ndarray
     p: np.ndarray
     w: np.ndarray
     v: np.ndarray
+    acc: np.ndarray  # (K, 3) angular accelerations
     obs_kf: np.ndarray
     obs_lm: np.ndarray
     obs_x: np.ndarray
@@ -92,6 +103,7 @@ class WindowProblem:
     robust_px: float
     prior_mu: np.ndarray  # (K, 6)
     prior_p2: np.ndarray  # (K, 6) squared inverse stds
+    acc_p2: float  # the accelerations' zero-mean prior (squared inverse std)
     col: np.ndarray
     n_cols: int
     lm_ids: list = field(default_factory=list)
@@ -107,6 +119,7 @@ class WindowSolution:
     p: np.ndarray
     w: np.ndarray
     v: np.ndarray
+    acc: np.ndarray
     rho: np.ndarray
     residuals: np.ndarray  # (n, 2) px
     cost: float
@@ -117,19 +130,11 @@ def solve_window(prob: WindowProblem, iterations: int) -> WindowSolution:
     """The window BA's solver: Levenberg-Marquardt with a Schur complement on the inverse
     depths, compiled (:func:`rsvo_ros.odometry.rs_projection.window_lm`). The README compares
     it with scipy's sparse least squares and GTSAM on the same windows."""
-    R, p, w, v, rho, res, cost, it = rs_projection.window_lm(
-        prob.R, prob.p, prob.w, prob.v, prob.obs_kf, prob.obs_lm, prob.obs_x, prob.obs_s,
-        prob.lm_anchor, prob.lm_x, prob.lm_s, prob.rho, prob.focal, prob.robust_px,
-        prob.prior_mu, prob.prior_p2, prob.col, prob.n_cols, iterations)  # fmt: skip
-    return WindowSolution(R, p, w, v, rho, res, float(cost), int(it))
-
-
-def row_cameras(kf: KeyFrame, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, p)`` (n, 3, 3), (n, 3) of a keyframe's cameras at row times ``s`` (n,)."""
-    st = kf.state
-    R = st.R @ so3_exp(s[:, None] * st.w)
-    p = st.p + (s[:, None] * st.v) @ st.R.T
-    return R, p
+    R, p, w, v, acc, rho, res, cost, it = rs_projection.window_lm(
+        prob.R, prob.p, prob.w, prob.v, prob.acc, prob.obs_kf, prob.obs_lm, prob.obs_x,
+        prob.obs_s, prob.lm_anchor, prob.lm_x, prob.lm_s, prob.rho, prob.focal, prob.robust_px,
+        prob.prior_mu, prob.prior_p2, prob.acc_p2, prob.col, prob.n_cols, iterations)  # fmt: skip
+    return WindowSolution(R, p, w, v, acc, rho, res, float(cost), int(it))
 
 
 def triangulate(Ra, pa, xa, Rb, pb, xb):
@@ -181,8 +186,8 @@ class LocalMap:
                 continue
             ia = np.array([idx_old[i] for i in shared])
             ib = np.array([self._index[kf.id][i] for i in shared])
-            Ra, pa = row_cameras(older, older.obs.s[ia])
-            Rb, pb = row_cameras(kf, kf.obs.s[ib])
+            Ra, pa = older.state.row_cameras(older.obs.s[ia])
+            Rb, pb = kf.state.row_cameras(kf.obs.s[ib])
             xa, xb = older.obs.x[ia], kf.obs.x[ib]
             la, lb, angle = triangulate(Ra, pa, xa, Rb, pb, xb)
             ok = np.isfinite(la) & (la > 0) & (lb > 0) & (angle >= o.min_parallax_deg)
@@ -222,7 +227,7 @@ class LocalMap:
             for k, rows in moved.items():  # vectorized per new anchor (landmark by landmark
                 kf = self.keyframes[k]  # it held the GIL 20-50 ms a keyframe at 1280x720)
                 at = np.array([self._index[kf.id][int(ids[n])] for n in rows], np.int64)
-                R, p = row_cameras(kf, kf.obs.s[at])
+                R, p = kf.state.row_cameras(kf.obs.s[at])
                 depth = np.einsum("nji,nj->ni", R, X[rows] - p)[:, 2]
                 for n, j, d in zip(rows, at.tolist(), depth.tolist(), strict=True):
                     tid = int(ids[n])
@@ -243,9 +248,9 @@ class LocalMap:
             return np.zeros(0, np.int64), np.zeros((0, 3))
         kf_pos = {kf.id: k for k, kf in enumerate(self.keyframes)}
         lms = [self.landmarks[int(i)] for i in ids]
-        R, p, w, v = self._state_arrays()
+        R, p, w, v, acc = self._state_arrays()
         X = rs_projection.landmark_points(
-            R, p, w, v, np.array([kf_pos[lm.anchor] for lm in lms], np.int64),
+            R, p, w, v, acc, np.array([kf_pos[lm.anchor] for lm in lms], np.int64),
             np.array([lm.x for lm in lms]), np.array([lm.s for lm in lms]),
             np.array([lm.rho for lm in lms]))  # fmt: skip
         return ids, X
@@ -253,7 +258,8 @@ class LocalMap:
     def _state_arrays(self):
         st = [kf.state for kf in self.keyframes]
         return (np.stack([s.R for s in st]), np.stack([s.p for s in st]),
-                np.stack([s.w for s in st]), np.stack([s.v for s in st]))  # fmt: skip
+                np.stack([s.w for s in st]), np.stack([s.v for s in st]),
+                np.stack([s.a for s in st]))  # fmt: skip
 
     # ------------------------------------------------------------------ the window BA
 
@@ -295,6 +301,8 @@ class LocalMap:
             held[0, :6] = True
             base = self.keyframes[1].state.p - self.keyframes[0].state.p
             held[1, 3 + int(np.argmax(np.abs(base)))] = True
+        if o.prior_acc_rad_s2 <= 0:
+            held[:, 12:15] = True  # constant velocity within a frame
         col = -np.ones((K, rs_projection.FRAME_PARAMS), np.int64)
         col[~held] = np.arange(int((~held).sum()))  # held poses keep their velocities free
         mu, p2 = np.zeros((K, 6)), np.zeros((K, 6))
@@ -306,17 +314,17 @@ class LocalMap:
             mu[k] = np.concatenate([w_t, v_t])
             sv = max(o.prior_v_rel * float(np.linalg.norm(v_t)), o.prior_v_floor)
             p2[k] = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2], 3)
-        R, p, w, v = self._state_arrays()
+        R, p, w, v, acc = self._state_arrays()
         anchor_rows = [self.keyframes[k].obs.rows[self._index[self.keyframes[k].id][t]]
                        for k, t in zip(lm_anchor.tolist(), lm_ids, strict=True)]
         return WindowProblem(
-            R, p, w, v, np.concatenate(obs_kf), np.concatenate(obs_lm),
+            R, p, w, v, acc, np.concatenate(obs_kf), np.concatenate(obs_lm),
             np.concatenate(obs_x).astype(float), np.concatenate(obs_s).astype(float), lm_anchor,
             np.array([self.landmarks[t].x for t in lm_ids]),
             np.array([self.landmarks[t].s for t in lm_ids]),
             np.array([self.landmarks[t].rho for t in lm_ids]), self.focal, o.robust_px, mu, p2,
-            col, int((~held).sum()), lm_ids, obs_tid, np.concatenate(obs_rows).astype(float),
-            np.array(anchor_rows, float),
+            acc_prior_p2(o.prior_acc_rad_s2), col, int((~held).sum()), lm_ids, obs_tid,
+            np.concatenate(obs_rows).astype(float), np.array(anchor_rows, float),
             np.array([kf.state.stamp_ns for kf in self.keyframes], np.int64))  # fmt: skip
 
     def set_row_times(self, row_time) -> None:
@@ -340,7 +348,7 @@ class LocalMap:
         sol = solve_window(prob, iterations or self.options.ba_iterations)
         for k, kf in enumerate(self.keyframes):
             kf.state.R, kf.state.p = sol.R[k], sol.p[k]
-            kf.state.w, kf.state.v = sol.w[k], sol.v[k]
+            kf.state.w, kf.state.v, kf.state.a = sol.w[k], sol.v[k], sol.acc[k]
         for j, t in enumerate(prob.lm_ids):
             self.landmarks[t].rho = float(sol.rho[j])
         bad = np.linalg.norm(sol.residuals, axis=1) > self.options.outlier_px

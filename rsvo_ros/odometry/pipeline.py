@@ -387,7 +387,7 @@ class OdometryPipeline:
         self._window_was_initialising = self.window.initialising
         velocity = None
         if state is not None and out.status == "posed":
-            velocity = state.row0_velocities(-self.window.row_ref * self.window.line_delay)
+            velocity = state.row0_velocities(self.window.row0_time())
         n = len(obs)
         reason = out.reason
         if out.status == "held" and interval is not None and len(pair.ids) \

@@ -1,17 +1,25 @@
 """Rolling-shutter reprojection: residuals and Jacobians for tracking and the window BA (numba).
 
 A frame's state is its camera at the reference row (the principal point's row) in the world,
-``R`` (world <- camera) and ``p`` (position), and its instantaneous motion ``w`` (rad/s) and
-``v`` (map units/s) in that camera's frame. The camera that exposed row ``r`` is the reference
-one moved by ``s = (r - row_ref) * tau`` seconds of that motion (CONTRACTS.md's convention,
-re-expressed at the reference row):
+``R`` (world <- camera) and ``p`` (position), its instantaneous motion ``w`` (rad/s) and
+``v`` (map units/s) in that camera's frame, and its angular acceleration ``a`` (rad/s^2). The
+camera that exposed row ``r`` is the reference one moved by ``s = (r - row_ref) * tau`` seconds
+of that motion (CONTRACTS.md's convention, re-expressed at the reference row, plus a turn rate
+that changes during the readout):
 
-    R(s) = R Exp(s w),   p(s) = p + R (s v).
+    R(s) = R Exp(s w + s^2/2 a),   p(s) = p + R (s v).
 
-A world point ``X`` seen in row ``r`` is at ``X_c = Exp(-s w) (R^T (X - p) - s v)`` in that
+With ``a = 0`` this is the paper's constant velocity. Hand-held shake of 8-15 Hz turns the
+camera at a rate that changes within one readout; constant velocity leaves 1.7-3.2 px RMS of a
+walk's within-readout rotation unexplained at 100 us/row, the acceleration 0.3-0.6 px (README).
+In the kernels the rotation is ``Exp(s w_s)`` with ``w_s = w + s/2 a``, so the derivative by
+``a`` is ``s/2`` times the one by ``w``.
+
+A world point ``X`` seen in row ``r`` is at ``X_c = Exp(-s w_s) (R^T (X - p) - s v)`` in that
 row's camera and projects to ``(X_c0 / X_c2, X_c1 / X_c2)`` (normalized coordinates); residuals
 are in pixels (times the focal length). Increments: ``R <- R Exp(dtheta)``, ``p <- p + dp``,
-``w <- w + dw``, ``v <- v + dv``; a frame's 12 parameters are ``[dtheta, dp, dw, dv]``.
+``w <- w + dw``, ``v <- v + dv``, ``a <- a + da``; a frame's 15 parameters are
+``[dtheta, dp, dw, dv, da]``.
 
 Landmarks of the window are inverse depths ``rho`` along the bearing ``b_a = (x_a, y_a, 1)`` of
 their first observation, in the camera of the anchor keyframe's row ``s_a``:
@@ -37,7 +45,7 @@ from rsvo_ros.core.small3 import rot_update as _rot_update
 from rsvo_ros.core.small3 import rows as _rows
 from rsvo_ros.core.small3 import scale as _scale
 
-FRAME_PARAMS = 12
+FRAME_PARAMS = 15
 MIN_DEPTH = 1e-6  # a point this close to (or behind) the camera plane gives no residual
 RHO_MIN, RHO_MAX = 1e-4, 1e3  # inverse depths are kept inside these bounds
 LAMBDA_MAX = 1e10
@@ -56,9 +64,17 @@ def _skew_mul(a, M):
 
 
 @nb.njit(**JIT, inline="always")
-def _row_pose(R, p, w, v, s):
+def _turn_rate(w, a, s):
+    """``w + s/2 a``: the constant rate that turns the camera from the reference row to row
+    time ``s``."""
+    h = 0.5 * s
+    return (w[0] + h * a[0], w[1] + h * a[1], w[2] + h * a[2])
+
+
+@nb.njit(**JIT, inline="always")
+def _row_pose(R, p, w, v, a, s):
     """(R(s), p(s)) as tuples."""
-    Es, _ = _exp_jr(_scale(s, w))
+    Es, _ = _exp_jr(_scale(s, _turn_rate(w, a, s)))
     return _mm(R, Es), _add(p, _mv(R, _scale(s, v)))
 
 
@@ -66,14 +82,14 @@ def _row_pose(R, p, w, v, s):
 
 
 @nb.njit(**JIT)
-def _observe(R, p, w, v, s, X, x_obs, focal, Jf, JX):
+def _observe(R, p, w, v, a, s, X, x_obs, focal, Jf, JX):
     """Residual (2,) in px of world point ``X`` seen at normalized ``x_obs`` in the row ``s`` of
-    a frame; fills ``Jf`` (2, 12) with its derivative by the frame's parameters and ``JX``
+    a frame; fills ``Jf`` (2, 15) with its derivative by the frame's parameters and ``JX``
     (2, 3) by ``X``. Returns (ex, ey, ok): ok False behind the camera."""
     d = (X[0] - p[0], X[1] - p[1], X[2] - p[2])
     q = _mtv(R, d)  # R^T (X - p)
     Y = (q[0] - s * v[0], q[1] - s * v[1], q[2] - s * v[2])
-    phi = _scale(-s, w)
+    phi = _scale(-s, _turn_rate(w, a, s))
     E, Jr = _exp_jr(phi)
     Xc = _mv(E, Y)
     if Xc[2] < MIN_DEPTH:
@@ -98,16 +114,17 @@ def _observe(R, p, w, v, s, X, x_obs, focal, Jf, JX):
         Jf[0, 3 + j], Jf[1, 3 + j] = -P0[j], -P1[j]
         Jf[0, 6 + j], Jf[1, 6 + j] = W0[j], W1[j]
         Jf[0, 9 + j], Jf[1, 9 + j] = -s * AE0[j], -s * AE1[j]
+        Jf[0, 12 + j], Jf[1, 12 + j] = 0.5 * s * W0[j], 0.5 * s * W1[j]
         JX[0, j], JX[1, j] = P0[j], P1[j]  # dXc/dX = E R^T
     return ex, ey, True
 
 
 @nb.njit(**JIT)
-def _landmark(Ra, pa, wa, va, sa, xa, rho, JA, Jrho):
-    """World point of an anchored inverse-depth landmark and its derivatives: ``JA`` (3, 12)
+def _landmark(Ra, pa, wa, va, aa, sa, xa, rho, JA, Jrho):
+    """World point of an anchored inverse-depth landmark and its derivatives: ``JA`` (3, 15)
     by the anchor frame's parameters, ``Jrho`` (3,) by ``rho``."""
     b = (xa[0] / rho, xa[1] / rho, 1.0 / rho)
-    Ea, Jra = _exp_jr(_scale(sa, wa))
+    Ea, Jra = _exp_jr(_scale(sa, _turn_rate(wa, aa, sa)))
     Eb = _mv(Ea, b)
     m = _add(_scale(sa, va), Eb)
     X = _add(pa, _mv(Ra, m))
@@ -123,6 +140,7 @@ def _landmark(Ra, pa, wa, va, sa, xa, rho, JA, Jrho):
             JA[i, 3 + j] = 1.0 if i == j else 0.0
             JA[i, 6 + j] = -sa * RaEbJ[i][j]
             JA[i, 9 + j] = sa * Ra[i][j]
+            JA[i, 12 + j] = -0.5 * sa * sa * RaEbJ[i][j]
     ie = -1.0 / rho
     Xa = _mv(RaE, (xa[0], xa[1], 1.0))
     for i in range(3):
@@ -134,74 +152,88 @@ def _landmark(Ra, pa, wa, va, sa, xa, rho, JA, Jrho):
 
 
 @nb.njit(**JIT)
-def _track_cost(R, p, w, v, X, x_obs, s, focal, robust, prior_mu, prior_p2):
+def _track_cost(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, acc_p2):
     Rr = _rows(R)
     pp, ww, vv = (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2])
+    aa = (a[0], a[1], a[2])
     Jf = np.empty((2, FRAME_PARAMS))
     JX = np.empty((2, 3))
     c = 0.0
     for i in range(X.shape[0]):
-        ex, ey, ok = _observe(Rr, pp, ww, vv, s[i], (X[i, 0], X[i, 1], X[i, 2]),
+        ex, ey, ok = _observe(Rr, pp, ww, vv, aa, s[i], (X[i, 0], X[i, 1], X[i, 2]),
                               (x_obs[i, 0], x_obs[i, 1]), focal, Jf, JX)  # fmt: skip
         e2 = ex * ex + ey * ey if ok else 100.0 * robust * robust
         c += robust * robust * np.log1p(e2 / (robust * robust))
     for j in range(3):
         c += prior_p2[j] * (w[j] - prior_mu[j]) ** 2
         c += prior_p2[3 + j] * (v[j] - prior_mu[3 + j]) ** 2
+        c += acc_p2 * a[j] ** 2
     return c
 
 
 @nb.njit(**JIT)
-def track_frame(R, p, w, v, X, x_obs, s, focal, robust, prior_mu, prior_p2, iterations):
+def track_frame(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, acc_p2,
+                iterations):  # fmt: skip
     """Motion-only RS pose of one frame against fixed world points (Levenberg-Marquardt,
     Cauchy loss of scale ``robust`` px; a prior ``sum(prior_p2 (vel - prior_mu)^2)`` on
-    ``[w, v]``). ``X`` (n, 3), ``x_obs`` (n, 2) normalized, ``s`` (n,) row times.
-    Returns R, p, w, v, residuals (n, 2) px, cost and the Gauss-Newton Hessian (12, 12)."""
-    R, p, w, v = R.copy(), p.copy(), w.copy(), v.copy()
+    ``[w, v]`` and ``acc_p2 |a|^2`` on the angular acceleration; ``acc_p2 <= 0`` holds ``a``).
+    ``X`` (n, 3), ``x_obs`` (n, 2) normalized, ``s`` (n,) row times. Returns R, p, w, v, a,
+    residuals (n, 2) px, cost and the Gauss-Newton Hessian (15, 15)."""
+    R, p, w, v, a = R.copy(), p.copy(), w.copy(), v.copy(), a.copy()
     n = X.shape[0]
     Jf = np.empty((2, FRAME_PARAMS))
     JX = np.empty((2, 3))
     H = np.zeros((FRAME_PARAMS, FRAME_PARAMS))
     g = np.zeros(FRAME_PARAMS)
     lam = 1e-3
-    cost = _track_cost(R, p, w, v, X, x_obs, s, focal, robust, prior_mu, prior_p2)
+    cost = _track_cost(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, acc_p2)
     for _ in range(iterations):
         H[:] = 0.0
         g[:] = 0.0
         Rr = _rows(R)
         pp, ww, vv = (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2])
+        aa = (a[0], a[1], a[2])
         for i in range(n):
-            ex, ey, ok = _observe(Rr, pp, ww, vv, s[i], (X[i, 0], X[i, 1], X[i, 2]),
+            ex, ey, ok = _observe(Rr, pp, ww, vv, aa, s[i], (X[i, 0], X[i, 1], X[i, 2]),
                                   (x_obs[i, 0], x_obs[i, 1]), focal, Jf, JX)  # fmt: skip
             if not ok:
                 continue
             wt = 1.0 / (1.0 + (ex * ex + ey * ey) / (robust * robust))
-            for a in range(FRAME_PARAMS):
-                ja0, ja1 = wt * Jf[0, a], wt * Jf[1, a]
-                g[a] += ja0 * ex + ja1 * ey
-                for b in range(a, FRAME_PARAMS):
-                    H[a, b] += ja0 * Jf[0, b] + ja1 * Jf[1, b]
-        for a in range(FRAME_PARAMS):
-            for b in range(a):
-                H[a, b] = H[b, a]
+            for i1 in range(FRAME_PARAMS):
+                ja0, ja1 = wt * Jf[0, i1], wt * Jf[1, i1]
+                g[i1] += ja0 * ex + ja1 * ey
+                for i2 in range(i1, FRAME_PARAMS):
+                    H[i1, i2] += ja0 * Jf[0, i2] + ja1 * Jf[1, i2]
+        for i1 in range(FRAME_PARAMS):
+            for i2 in range(i1):
+                H[i1, i2] = H[i2, i1]
         for j in range(3):
             H[6 + j, 6 + j] += prior_p2[j]
             g[6 + j] += prior_p2[j] * (w[j] - prior_mu[j])
             H[9 + j, 9 + j] += prior_p2[3 + j]
             g[9 + j] += prior_p2[3 + j] * (v[j] - prior_mu[3 + j])
+            if acc_p2 > 0:
+                H[12 + j, 12 + j] += acc_p2
+                g[12 + j] += acc_p2 * a[j]
+            else:  # held: the acceleration's rows and columns leave the system
+                H[12 + j, :] = 0.0
+                H[:, 12 + j] = 0.0
+                H[12 + j, 12 + j] = 1.0
+                g[12 + j] = 0.0
         improved = False
         while lam < LAMBDA_MAX:
             A = H.copy()
-            for a in range(FRAME_PARAMS):
-                A[a, a] += lam * max(H[a, a], 1e-9)
+            for i1 in range(FRAME_PARAMS):
+                A[i1, i1] += lam * max(H[i1, i1], 1e-9)
             delta = np.linalg.solve(A, -g)
             R_c = _rot_update(R, delta[0:3])
             p_c, w_c, v_c = p + delta[3:6], w + delta[6:9], v + delta[9:12]
-            c_new = _track_cost(R_c, p_c, w_c, v_c, X, x_obs, s, focal, robust, prior_mu,
-                                prior_p2)  # fmt: skip
+            a_c = a + delta[12:15]
+            c_new = _track_cost(R_c, p_c, w_c, v_c, a_c, X, x_obs, s, focal, robust, prior_mu,
+                                prior_p2, acc_p2)  # fmt: skip
             if np.isfinite(c_new) and c_new < cost:
                 rel = (cost - c_new) / max(cost, 1e-300)
-                R, p, w, v, cost = R_c, p_c, w_c, v_c, c_new
+                R, p, w, v, a, cost = R_c, p_c, w_c, v_c, a_c, c_new
                 lam = max(lam / 3.0, 1e-9)
                 improved = rel > 1e-9
                 break
@@ -211,36 +243,37 @@ def track_frame(R, p, w, v, X, x_obs, s, focal, robust, prior_mu, prior_p2, iter
     res = np.empty((n, 2))
     Rr = _rows(R)
     pp, ww, vv = (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2])
+    aa = (a[0], a[1], a[2])
     for i in range(n):
-        ex, ey, ok = _observe(Rr, pp, ww, vv, s[i], (X[i, 0], X[i, 1], X[i, 2]),
+        ex, ey, ok = _observe(Rr, pp, ww, vv, aa, s[i], (X[i, 0], X[i, 1], X[i, 2]),
                               (x_obs[i, 0], x_obs[i, 1]), focal, Jf, JX)  # fmt: skip
         res[i, 0] = ex if ok else np.inf
         res[i, 1] = ey if ok else np.inf
-    return R, p, w, v, res, cost, H
+    return R, p, w, v, a, res, cost, H
 
 
 # --------------------------------------------------------------------------- the window
 
 
 @nb.njit(**JIT, inline="always")
-def _observation(o, R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
-                 JA, Jrho, Jf, JX):  # fmt: skip
+def _observation(o, R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                 focal, JA, Jrho, Jf, JX):  # fmt: skip
     """Window observation ``o``: its landmark from the anchor keyframe's row camera (Jacobians
     into ``JA``, ``Jrho``), seen by its keyframe at its own row time (``Jf``, ``JX``). Returns
     the residual ``(ex, ey)`` and whether the point projects."""
     k, j = obs_kf[o], obs_lm[o]
     a = lm_anchor[j]
     X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
-                  (v[a, 0], v[a, 1], v[a, 2]), lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j], JA,
-                  Jrho)  # fmt: skip
+                  (v[a, 0], v[a, 1], v[a, 2]), (acc[a, 0], acc[a, 1], acc[a, 2]), lm_s[j],
+                  (lm_x[j, 0], lm_x[j, 1]), rho[j], JA, Jrho)  # fmt: skip
     return _observe(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]), (w[k, 0], w[k, 1], w[k, 2]),
-                    (v[k, 0], v[k, 1], v[k, 2]), obs_s[o], X, (obs_x[o, 0], obs_x[o, 1]), focal,
-                    Jf, JX)  # fmt: skip
+                    (v[k, 0], v[k, 1], v[k, 2]), (acc[k, 0], acc[k, 1], acc[k, 2]), obs_s[o], X,
+                    (obs_x[o, 0], obs_x[o, 1]), focal, Jf, JX)  # fmt: skip
 
 
 @nb.njit(**JIT)
-def _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
-                 robust, mu, p2, res):  # fmt: skip
+def _window_cost(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                 focal, robust, mu, p2, acc_p2, res):  # fmt: skip
     """Robust cost of the window (and each observation's residual into ``res`` (n, 2))."""
     JA = np.empty((3, FRAME_PARAMS))
     Jrho = np.empty(3)
@@ -249,8 +282,8 @@ def _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s
     c = 0.0
     r2 = robust * robust
     for o in range(obs_kf.shape[0]):
-        ex, ey, ok = _observation(o, R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x,
-                                  lm_s, rho, focal, JA, Jrho, Jf, JX)  # fmt: skip
+        ex, ey, ok = _observation(o, R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor,
+                                  lm_x, lm_s, rho, focal, JA, Jrho, Jf, JX)  # fmt: skip
         if not ok:
             ex = ey = 10.0 * robust
         res[o, 0], res[o, 1] = ex, ey
@@ -259,15 +292,16 @@ def _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s
         for j in range(3):
             c += p2[k, j] * (w[k, j] - mu[k, j]) ** 2
             c += p2[k, 3 + j] * (v[k, j] - mu[k, 3 + j]) ** 2
+            c += acc_p2 * acc[k, j] ** 2
     return c
 
 
 @nb.njit(**JIT)
-def _window_system(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
-                   focal, robust, mu, p2, col, Hcc, gc, Hcp, hpp, gp):  # fmt: skip
+def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                   focal, robust, mu, p2, acc_p2, col, Hcc, gc, Hcp, hpp, gp):  # fmt: skip
     """Normal equations of the window with IRLS weights of the Cauchy loss: the frames'
     block ``Hcc``/``gc`` (columns ``col[k, i]``, -1 for fixed parameters), the frame x
-    landmark blocks ``Hcp`` (K, M, 12), the landmarks' ``hpp``/``gp`` (M,)."""
+    landmark blocks ``Hcp`` (K, M, 15), the landmarks' ``hpp``/``gp`` (M,)."""
     K = R.shape[0]
     JA = np.empty((3, FRAME_PARAMS))
     Jrho = np.empty(3)
@@ -284,8 +318,8 @@ def _window_system(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
     for o in range(obs_kf.shape[0]):
         k, j = obs_kf[o], obs_lm[o]
         a = lm_anchor[j]
-        ex, ey, ok = _observation(o, R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x,
-                                  lm_s, rho, focal, JA, Jrho, Jf, JX)  # fmt: skip
+        ex, ey, ok = _observation(o, R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor,
+                                  lm_x, lm_s, rho, focal, JA, Jrho, Jf, JX)  # fmt: skip
         if not ok:
             continue
         wt = 1.0 / (1.0 + (ex * ex + ey * ey) / r2)
@@ -321,16 +355,21 @@ def _window_system(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
             val = w[kk, i] if i < 3 else v[kk, i - 3]
             Hcc[ci, ci] += p2[kk, i]
             gc[ci] += p2[kk, i] * (val - mu[kk, i])
+        for i in range(3):  # the angular accelerations' (zero-mean)
+            ci = col[kk, 12 + i]
+            if ci >= 0:
+                Hcc[ci, ci] += acc_p2
+                gc[ci] += acc_p2 * acc[kk, i]
 
 
 @nb.njit(**JIT)
-def window_lm(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
-              robust, mu, p2, col, n_cols, iterations):  # fmt: skip
+def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
+              robust, mu, p2, acc_p2, col, n_cols, iterations):  # fmt: skip
     """Levenberg-Marquardt over the window: the free frame parameters (``col``) and every
     landmark's inverse depth, the landmarks eliminated by the Schur complement (their blocks
-    are 1 x 1). Returns the new R, p, w, v, rho, the residuals (n_obs, 2), the final cost and
-    the iterations run."""
-    R, p, w, v, rho = R.copy(), p.copy(), w.copy(), v.copy(), rho.copy()
+    are 1 x 1). Returns the new R, p, w, v, acc, rho, the residuals (n_obs, 2), the final cost
+    and the iterations run."""
+    R, p, w, v, acc, rho = R.copy(), p.copy(), w.copy(), v.copy(), acc.copy(), rho.copy()
     K, M = R.shape[0], rho.shape[0]
     Hcc = np.zeros((n_cols, n_cols))
     gc = np.zeros(n_cols)
@@ -338,8 +377,8 @@ def window_lm(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, r
     hpp = np.zeros(M)
     gp = np.zeros(M)
     res = np.zeros((obs_kf.shape[0], 2))
-    cost = _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
-                        focal, robust, mu, p2, res)  # fmt: skip
+    cost = _window_cost(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                        focal, robust, mu, p2, acc_p2, res)  # fmt: skip
     # which frames see each landmark (its anchor and its observers)
     seen = np.zeros((M, K), np.bool_)
     for o in range(obs_kf.shape[0]):
@@ -349,8 +388,8 @@ def window_lm(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, r
     lam = 1e-4
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007
-        _window_system(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
-                       focal, robust, mu, p2, col, Hcc, gc, Hcp, hpp, gp)
+        _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s,
+                       rho, focal, robust, mu, p2, acc_p2, col, Hcc, gc, Hcp, hpp, gp)
         accepted = False
         while lam < LAMBDA_MAX:
             # Schur complement on the landmarks (damped like the rest)
@@ -379,7 +418,7 @@ def window_lm(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, r
                                 if c2 >= 0:
                                     S[c1, c2] -= h1 * Hcp[k2, j, i2]
             dc = np.linalg.solve(S, b)
-            R_c, p_c, w_c, v_c = R.copy(), p.copy(), w.copy(), v.copy()
+            R_c, p_c, w_c, v_c, acc_c = R.copy(), p.copy(), w.copy(), v.copy(), acc.copy()
             for k in range(K):
                 d = np.zeros(FRAME_PARAMS)
                 for i in range(FRAME_PARAMS):
@@ -389,34 +428,36 @@ def window_lm(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, r
                 p_c[k] = p[k] + d[3:6]
                 w_c[k] = w[k] + d[6:9]
                 v_c[k] = v[k] + d[9:12]
+                acc_c[k] = acc[k] + d[12:15]
             rho_c = rho.copy()
             for j in range(M):
-                acc = gp[j]
+                gj = gp[j]
                 for k in range(K):
                     if not seen[j, k]:
                         continue
                     for i in range(FRAME_PARAMS):
                         if col[k, i] >= 0:
-                            acc += Hcp[k, j, i] * dc[col[k, i]]
-                rho_c[j] = min(max(rho[j] - acc * inv[j], RHO_MIN), RHO_MAX)
-            c_new = _window_cost(R_c, p_c, w_c, v_c, obs_kf, obs_lm, obs_x, obs_s, lm_anchor,
-                                 lm_x, lm_s, rho_c, focal, robust, mu, p2, res)  # fmt: skip
+                            gj += Hcp[k, j, i] * dc[col[k, i]]
+                rho_c[j] = min(max(rho[j] - gj * inv[j], RHO_MIN), RHO_MAX)
+            c_new = _window_cost(R_c, p_c, w_c, v_c, acc_c, obs_kf, obs_lm, obs_x, obs_s,
+                                 lm_anchor, lm_x, lm_s, rho_c, focal, robust, mu, p2, acc_p2,
+                                 res)  # fmt: skip
             if np.isfinite(c_new) and c_new < cost:
                 rel = (cost - c_new) / max(cost, 1e-300)
-                R, p, w, v, rho, cost = R_c, p_c, w_c, v_c, rho_c, c_new
+                R, p, w, v, acc, rho, cost = R_c, p_c, w_c, v_c, acc_c, rho_c, c_new
                 lam = max(lam / 3.0, 1e-9)
                 accepted = rel > 1e-8
                 break
             lam *= 4.0
         if not accepted:
             break
-    _window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
-                 robust, mu, p2, res)
-    return R, p, w, v, rho, res, cost, it
+    _window_cost(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                 focal, robust, mu, p2, acc_p2, res)
+    return R, p, w, v, acc, rho, res, cost, it
 
 
 @nb.njit(**JIT)
-def landmark_points(R, p, w, v, lm_anchor, lm_x, lm_s, rho):
+def landmark_points(R, p, w, v, acc, lm_anchor, lm_x, lm_s, rho):
     """World points (M, 3) of the window's landmarks."""
     M = rho.shape[0]
     out = np.empty((M, 3))
@@ -425,16 +466,17 @@ def landmark_points(R, p, w, v, lm_anchor, lm_x, lm_s, rho):
     for j in range(M):
         a = lm_anchor[j]
         X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
-                      (v[a, 0], v[a, 1], v[a, 2]), lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j],
-                      JA, Jrho)  # fmt: skip
+                      (v[a, 0], v[a, 1], v[a, 2]), (acc[a, 0], acc[a, 1], acc[a, 2]), lm_s[j],
+                      (lm_x[j, 0], lm_x[j, 1]), rho[j], JA, Jrho)  # fmt: skip
         out[j, 0], out[j, 1], out[j, 2] = X
     return out
 
 
 @nb.njit(**JIT)
-def row_camera(R, p, w, v, s):
+def row_camera(R, p, w, v, a, s):
     """(R(s) (3, 3), p(s) (3,)) of a frame's camera at row time ``s``."""
-    Rs, ps = _row_pose(_rows(R), (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2]), s)
+    Rs, ps = _row_pose(_rows(R), (p[0], p[1], p[2]), (w[0], w[1], w[2]), (v[0], v[1], v[2]),
+                       (a[0], a[1], a[2]), s)
     out = np.empty((3, 3))
     for i in range(3):
         for j in range(3):

@@ -36,7 +36,7 @@ from rsvo_ros.odometry.frame import (
     extrapolate,
     interval_velocity,
 )
-from rsvo_ros.odometry.local_map import BAReport, LocalMap, MapOptions
+from rsvo_ros.odometry.local_map import BAReport, LocalMap, MapOptions, acc_prior_p2
 from rsvo_ros.twoview import LMOptions, RansacOptions, estimate_relative_pose
 from rsvo_ros.twoview.essential import rotation_only_residual_px
 from rsvo_ros.twoview.state import Correspondences
@@ -115,7 +115,7 @@ class WindowResult:
     inliers: int = 0
     tracked: int = 0  # map points seen
     keyframe: bool = False
-    hessian: np.ndarray | None = None  # (12, 12) of tracking, px^-2 units
+    hessian: np.ndarray | None = None  # (15, 15) of tracking, px^-2 units
     sigma2: float = 1.0  # residual variance of tracking (px^2)
     ba: BAReport | None = None
     # a window BA moved a frame (this one inline, or a keyframe whose mapping finished since
@@ -184,7 +184,8 @@ class WindowOdometry:
     def row_time(self, rows: np.ndarray) -> np.ndarray:
         return (np.asarray(rows, float) - self.row_ref) * self.line_delay
 
-    def _row0(self) -> float:
+    def row0_time(self) -> float:
+        """Row time (s) of row 0 from the reference row (negative)."""
         return -self.row_ref * self.line_delay
 
     def _new_keyframe(self, state: FrameState, obs: Observations,
@@ -362,7 +363,7 @@ class WindowOdometry:
                 scale = baseline
             # the reference keyframe where the chain puts its row 0, at its reference row
             w_p, v_p = res.vel_prev[0], res.vel_prev[1] * scale
-            s0 = self._row0()
+            s0 = self.row0_time()
             R_ref = h_ref[:3, :3] @ so3_exp(-s0 * w_p)
             ref.state = FrameState(ref.state.stamp_ns, R_ref, h_ref[:3, 3] - R_ref @ (s0 * v_p))
         state, vel_ref, vel_cur = self._states_from_pair(res, ref.state, stamp_ns, scale)
@@ -395,7 +396,7 @@ class WindowOdometry:
 
     def _rebase_to_row0_of(self, kf: KeyFrame) -> None:
         """Move the world so that the first keyframe's row-0 camera is the origin."""
-        T0 = kf.state.pose(self._row0())
+        T0 = kf.state.pose(self.row0_time())
         R0, p0 = T0[:3, :3], T0[:3, 3]
         for k in self.map.keyframes:
             k.state.p = R0.T @ (k.state.p - p0)
@@ -415,16 +416,16 @@ class WindowOdometry:
             w_cv, v_cv = self._last.w, self._last.v
         sv = max(o.prior_v_rel * float(np.linalg.norm(v_cv)), o.prior_v_floor)
         p2 = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2], 3)
-        R, p, w, v, res, cost, H = rs_projection.track_frame(
-            pred.R, pred.p, self._last.w, self._last.v, X[ia], obs.x[ib], obs.s[ib],
-            self.focal, o.track_robust_px * self._px, np.concatenate([w_cv, v_cv]), p2,
-            o.track_iterations)  # fmt: skip
+        R, p, w, v, a, res, cost, H = rs_projection.track_frame(
+            pred.R, pred.p, self._last.w, self._last.v, np.zeros(3), X[ia], obs.x[ib],
+            obs.s[ib], self.focal, o.track_robust_px * self._px, np.concatenate([w_cv, v_cv]),
+            p2, acc_prior_p2(o.map.prior_acc_rad_s2), o.track_iterations)  # fmt: skip
         err = np.linalg.norm(res, axis=1)
         inl = err < o.track_inlier_px * self._px
         if inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)) \
                 or not (np.isfinite(R).all() and np.isfinite(p).all()):  # fmt: skip
             return None
-        state = FrameState(stamp_ns, R, p, w, v)
+        state = FrameState(stamp_ns, R, p, w, v, a)
         sigma2 = float(np.mean(err[inl] ** 2)) / 2.0
         result = WindowResult("posed", "", state, inliers=int(inl.sum()), tracked=len(ia),
                               hessian=H, sigma2=max(sigma2, 1e-6))  # fmt: skip
@@ -524,8 +525,7 @@ class WindowOdometry:
             & (res.depths_prev[i_pair] > 0)
         if good.sum() >= self.options.min_shared_for_scale:
             s = kf.obs.s[ia][i_pair][good]
-            R_s = kf.state.R @ so3_exp(s[:, None] * kf.state.w)
-            p_s = kf.state.p + (s[:, None] * kf.state.v) @ kf.state.R.T
+            R_s, p_s = kf.state.row_cameras(s)
             depth_map = np.einsum("nji,nj->ni", R_s, X[i_map][good] - p_s)[:, 2]
             ratio = depth_map / res.depths_prev[i_pair][good]
             ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
@@ -599,7 +599,7 @@ class WindowOdometry:
 
     def row0_pose(self, state: FrameState) -> np.ndarray:
         """(4, 4) ``T_world_camera`` of a frame's row 0 (what the pipeline reports)."""
-        return state.pose(self._row0())
+        return state.pose(self.row0_time())
 
 
 def covariance_from_tracking(result: WindowResult) -> np.ndarray:
@@ -608,7 +608,8 @@ def covariance_from_tracking(result: WindowResult) -> np.ndarray:
     if result.hessian is None or result.state is None:
         return np.diag([1e2] * 3 + [1e1] * 3)
     try:
-        cov = np.linalg.inv(result.hessian + 1e-9 * np.eye(12))[:6, :6] * result.sigma2
+        n = rs_projection.FRAME_PARAMS
+        cov = np.linalg.inv(result.hessian + 1e-9 * np.eye(n))[:6, :6] * result.sigma2
     except np.linalg.LinAlgError:
         return np.diag([1e2] * 3 + [1e1] * 3)
     R = result.state.R

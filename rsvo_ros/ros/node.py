@@ -207,6 +207,7 @@ class RsvoNode(Node):
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
         opts.window.async_mapping = bool(self.p["async_mapping"])
+        opts.window.map.prior_acc_rad_s2 = float(self.p["angular_acceleration_std"])
         opts.window.keyframe_log_max = int(self.p["path_max_length"])  # flat memory
         opts.line_delay_auto = self.p["line_delay_mode"] == "auto"
         self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)

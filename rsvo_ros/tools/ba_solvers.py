@@ -3,7 +3,8 @@
     python -m rsvo_ros.tools.ba_solvers [--frames 150] [--severity 1.0] [--windows 12]
 
 Windows are taken from a synthetic hand-held walk (``rsvo_synth --motion walk``) as the window
-backend meets them (the problem just before each keyframe's BA). Solvers:
+backend meets them (the problem just before each keyframe's BA), with the keyframes' angular
+accelerations held at zero (the 12 parameters per frame the comparison was made with). Solvers:
 
 - ``compiled``: the package's Levenberg-Marquardt with a Schur complement on the inverse depths
   (numba, :func:`rsvo_ros.odometry.local_map.solve_window`);
@@ -31,6 +32,7 @@ from rsvo_ros.odometry import rs_projection as rp
 from rsvo_ros.odometry.local_map import LocalMap, WindowProblem, solve_window
 
 ITERATIONS = 10
+NO_ACC = (0.0, 0.0, 0.0)  # the windows' angular accelerations are held at zero
 
 
 def collect_windows(frames: int, severity: float, count: int, seed: int = 0
@@ -41,7 +43,9 @@ def collect_windows(frames: int, severity: float, count: int, seed: int = 0
 
     cfg = SynthConfig(frames=frames, motion="walk", severity=severity, seed=seed)
     renderer = SequenceRenderer(cfg)
-    pipe = OdometryPipeline(renderer.K, None, cfg.tau, PipelineOptions(backend="window"))
+    options = PipelineOptions(backend="window")
+    options.window.map.prior_acc_rad_s2 = 0.0  # accelerations held: 12 parameters per frame
+    pipe = OdometryPipeline(renderer.K, None, cfg.tau, options)
     found: list[WindowProblem] = []
     original = LocalMap.optimize
 
@@ -63,30 +67,31 @@ def collect_windows(frames: int, severity: float, count: int, seed: int = 0
 
 def cost_of(prob: WindowProblem, R, p, w, v, rho) -> float:
     res = np.zeros((len(prob.obs_kf), 2))
-    return float(rp._window_cost(R, p, w, v, prob.obs_kf, prob.obs_lm, prob.obs_x, prob.obs_s,
-                                 prob.lm_anchor, prob.lm_x, prob.lm_s, rho, prob.focal,
-                                 prob.robust_px, prob.prior_mu, prob.prior_p2, res))
+    return float(rp._window_cost(R, p, w, v, prob.acc, prob.obs_kf, prob.obs_lm, prob.obs_x,
+                                 prob.obs_s, prob.lm_anchor, prob.lm_x, prob.lm_s, rho,
+                                 prob.focal, prob.robust_px, prob.prior_mu, prob.prior_p2,
+                                 prob.acc_p2, res))  # fmt: skip
 
 
 # --------------------------------------------------------------------------- scipy
 
 
 def _jacobian_rows(prob: WindowProblem, R, p, w, v, rho):
-    """Residuals (2n,) and their Jacobian blocks per observation: frame (2, 12), anchor
-    (2, 12), rho (2,)."""
+    """Residuals (2n,) and their Jacobian blocks per observation: frame (2, 15), anchor
+    (2, 15), rho (2,) (the accelerations held at zero)."""
     n = len(prob.obs_kf)
     e = np.zeros((n, 2))
-    Jf = np.zeros((n, 2, 12))
-    Ja = np.zeros((n, 2, 12))
+    Jf = np.zeros((n, 2, rp.FRAME_PARAMS))
+    Ja = np.zeros((n, 2, rp.FRAME_PARAMS))
     Jr = np.zeros((n, 2))
-    JA, Jrho = np.empty((3, 12)), np.empty(3)
-    jf, jx = np.empty((2, 12)), np.empty((2, 3))
+    JA, Jrho = np.empty((3, rp.FRAME_PARAMS)), np.empty(3)
+    jf, jx = np.empty((2, rp.FRAME_PARAMS)), np.empty((2, 3))
     for o in range(n):
         k, j = prob.obs_kf[o], prob.obs_lm[o]
         a = prob.lm_anchor[j]
-        X = rp._landmark(rp._rows(R[a]), tuple(p[a]), tuple(w[a]), tuple(v[a]), prob.lm_s[j],
-                         tuple(prob.lm_x[j]), rho[j], JA, Jrho)  # fmt: skip
-        ex, ey, ok = rp._observe(rp._rows(R[k]), tuple(p[k]), tuple(w[k]), tuple(v[k]),
+        X = rp._landmark(rp._rows(R[a]), tuple(p[a]), tuple(w[a]), tuple(v[a]), NO_ACC,
+                         prob.lm_s[j], tuple(prob.lm_x[j]), rho[j], JA, Jrho)  # fmt: skip
+        ex, ey, ok = rp._observe(rp._rows(R[k]), tuple(p[k]), tuple(w[k]), tuple(v[k]), NO_ACC,
                                  prob.obs_s[o], X, tuple(prob.obs_x[o]), prob.focal, jf, jx)
         if not ok:
             continue
@@ -107,7 +112,7 @@ def solve_scipy(prob: WindowProblem, iterations: int = ITERATIONS):
     prior_sd = np.sqrt(prob.prior_p2)
 
     def unpack(x):
-        d = np.zeros((K, 12))
+        d = np.zeros((K, rp.FRAME_PARAMS))
         d[free] = x[prob.col[free]]
         R = np.stack([prob.R[k] @ so3_exp(d[k, 0:3]) for k in range(K)])
         return R, prob.p + d[:, 3:6], prob.w + d[:, 6:9], prob.v + d[:, 9:12], \
@@ -128,7 +133,7 @@ def solve_scipy(prob: WindowProblem, iterations: int = ITERATIONS):
             for J, f in ((Jf[o], prob.obs_kf[o]), (Ja[o], prob.lm_anchor[prob.obs_lm[o]])):
                 J = J.copy()
                 J[:, 0:3] = J[:, 0:3] @ jr_rot[f]
-                for i in range(12):
+                for i in range(rp.FRAME_PARAMS):
                     c = prob.col[f, i]
                     if c >= 0:
                         rows += [2 * o, 2 * o + 1]
@@ -187,8 +192,8 @@ def solve_gtsam(prob: WindowProblem, iterations: int = ITERATIONS):
     def factor(o: int):
         k, j = int(prob.obs_kf[o]), int(prob.obs_lm[o])
         a = int(prob.lm_anchor[j])
-        JA, Jrho = np.empty((3, 12)), np.empty(3)
-        jf, jx = np.empty((2, 12)), np.empty((2, 3))
+        JA, Jrho = np.empty((3, rp.FRAME_PARAMS)), np.empty(3)
+        jf, jx = np.empty((2, rp.FRAME_PARAMS)), np.empty((2, 3))
 
         def error(this, vals, H):
             Tk, Ta = vals.atPose3(X(k)), vals.atPose3(X(a))
@@ -197,9 +202,9 @@ def solve_gtsam(prob: WindowProblem, iterations: int = ITERATIONS):
             wk, vk = vals.atVector(W(k)), vals.atVector(V(k))
             wa, va = vals.atVector(W(a)), vals.atVector(V(a))
             rho = float(vals.atVector(L(j))[0])
-            Xw = rp._landmark(rp._rows(Ra), tuple(pa), tuple(wa), tuple(va), prob.lm_s[j],
-                              tuple(prob.lm_x[j]), rho, JA, Jrho)  # fmt: skip
-            ex, ey, _ = rp._observe(rp._rows(Rk), tuple(pk), tuple(wk), tuple(vk),
+            Xw = rp._landmark(rp._rows(Ra), tuple(pa), tuple(wa), tuple(va), NO_ACC,
+                              prob.lm_s[j], tuple(prob.lm_x[j]), rho, JA, Jrho)  # fmt: skip
+            ex, ey, _ = rp._observe(rp._rows(Rk), tuple(pk), tuple(wk), tuple(vk), NO_ACC,
                                     prob.obs_s[o], Xw, tuple(prob.obs_x[o]), prob.focal, jf, jx)
             if H is not None:
                 Jan = jx @ JA

@@ -10,7 +10,9 @@ each model and backend; every figure is read from the replays' ``summary.json``.
   frames, tuning seeds and held-out seeds (100-) reported apart.
 
 Columns: ATE (RMSE after Sim(3)) of the RS and GS models with the window and the pairwise
-backend (and, for vehicles, RS pairwise without the motion prior: the paper's setting).
+backend (and, for vehicles, RS pairwise without the motion prior: the paper's setting), and the
+RS window with each frame's angular acceleration during the readout (prior std
+``ACCELERATION_STD``; the default holds it at zero).
 Writes ``tables.md``, ``rows.json`` and ``replay_ate.png`` into OUT.
 """
 
@@ -29,12 +31,14 @@ from rsvo_ros.sim.synth import SynthConfig
 from rsvo_ros.tools.replay import ReplayConfig, replay
 from rsvo_ros.tools.synth_bag import write_bag
 
-VARIANTS = {  # column -> (model, backend, motion prior)
-    "RS window": ("rs", "window", True),
-    "GS window": ("gs", "window", True),
-    "RS pairwise": ("rs", "pairwise", True),
-    "GS pairwise": ("gs", "pairwise", True),
-    "RS pairwise, no prior": ("rs", "pairwise", False),
+ACCELERATION_STD = 50.0  # rad/s^2: the "RS window, acceleration" column
+VARIANTS = {  # column -> (model, backend, motion prior, angular acceleration std)
+    "RS window": ("rs", "window", True, 0.0),
+    "GS window": ("gs", "window", True, 0.0),
+    "RS pairwise": ("rs", "pairwise", True, 0.0),
+    "GS pairwise": ("gs", "pairwise", True, 0.0),
+    "RS pairwise, no prior": ("rs", "pairwise", False, 0.0),
+    "RS window, acceleration": ("rs", "window", True, ACCELERATION_STD),
 }
 
 
@@ -74,10 +78,12 @@ def run_case(out: Path, name: str, config: dict, columns: list[str]) -> dict:
         write_bag(bag, SynthConfig(**config), overwrite=True, progress=False)
     row = {}
     for col in columns:
-        model, backend, prior = VARIANTS[col]
+        model, backend, prior, acc_std = VARIANTS[col]
         dest = out / f"{name}__{col.replace(' ', '_').replace(',', '')}"
+        options = PipelineOptions(motion_prior=prior, backend=backend)
+        options.window.map.prior_acc_rad_s2 = acc_std
         s = replay(ReplayConfig(bag, dest, model, overwrite=True, progress=False,
-                                options=PipelineOptions(motion_prior=prior, backend=backend)))
+                                options=options))  # fmt: skip
         acc = s["accuracy"]
         path = _path_length(bag)
         row[col] = {"ate_m": acc["ate_m"]["rmse"], "path_m": path,
@@ -124,11 +130,16 @@ def format_table(title: str, rows: list, columns: list[str]) -> str:
         rpe = max(r["RS window"]["rpe_rot_deg"] for r in sel)
         kw = [r["RS window"]["keyframe_w_rel_error"] for r in sel
               if r["RS window"]["keyframe_w_rel_error"] is not None]
+        acc = ""
+        if "RS window, acceleration" in columns:
+            ratio = _geo([r["RS window, acceleration"]["ate_m"] / r["RS window"]["ate_m"]
+                          for r in sel])
+            acc = f"; with the angular acceleration / without {ratio:.2f}"
         lines.append(f"- {g} ({len(sel)}): RS window / GS window geometric mean {w_gs:.2f}, "
                      f"RS window / RS pairwise {w_pw:.2f}; RS window worst {pct:.1f} % of the "
                      f"path, RPE rotation up to {rpe:.2f} deg per frame"
                      + (f", keyframe |w| error median {100 * np.median(kw):.0f} %" if kw
-                        else ""))
+                        else "") + acc)
     return "\n".join(lines)
 
 
@@ -142,11 +153,13 @@ def plot(path: Path, rows: list, columns: list[str]) -> None:
         " --line-delay 0", " LD0").replace(" --frames 300", " 300f") for _, opts, _ in rows]
     x = np.arange(len(rows))
     fig, ax = plt.subplots(figsize=(max(8, 0.45 * len(rows)), 4))
-    colours = ["tab:red", "tab:blue", "tab:orange", "tab:cyan", "tab:gray"]
+    colours = {"RS window": "tab:red", "GS window": "tab:blue", "RS pairwise": "tab:orange",
+               "GS pairwise": "tab:cyan", "RS pairwise, no prior": "tab:gray",
+               "RS window, acceleration": "tab:purple"}
     width = 0.8 / len(columns)
     for j, c in enumerate(columns):
         ax.bar(x + (j - (len(columns) - 1) / 2) * width, [r[c]["ate_m"] for _, _, r in rows],
-               width, label=c, color=colours[j])
+               width, label=c, color=colours[c])
     ax.set_yscale("log")
     ax.set_xticks(x, names, rotation=60, fontsize=7)
     ax.set_ylabel("ATE after Sim(3) (m)")
@@ -167,8 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     parts = []
     all_rows = {}
+    walk_columns = [c for c in VARIANTS if c != "RS pairwise, no prior"]
     for kind, cases, columns in (("vehicle", vehicle_cases(), list(VARIANTS)),
-                                 ("walk", walk_cases(), list(VARIANTS)[:4])):
+                                 ("walk", walk_cases(), walk_columns)):
         if args.only and args.only != kind:
             continue
         rows = []

@@ -13,22 +13,25 @@ from rsvo_ros.odometry import rs_projection as rp
 FOCAL = 500.0
 
 
+NP = rp.FRAME_PARAMS  # [dtheta, dp, dw, dv, da]
+
+
 def _frame(rng):
     return (so3_exp(rng.normal(0, 0.3, 3)), rng.normal(0, 1, 3), rng.normal(0, 1.0, 3),
-            rng.normal(0, 2.0, 3))  # fmt: skip
+            rng.normal(0, 2.0, 3), rng.normal(0, 40.0, 3))  # fmt: skip
 
 
 def _perturb(state, k, eps):
-    R, p, w, v = (np.array(x, float) for x in state)
-    d = np.zeros(12)
+    R, p, w, v, a = (np.array(x, float) for x in state)
+    d = np.zeros(NP)
     d[k] = eps
-    return (R @ so3_exp(d[0:3]), p + d[3:6], w + d[6:9], v + d[9:12])
+    return (R @ so3_exp(d[0:3]), p + d[3:6], w + d[6:9], v + d[9:12], a + d[12:15])
 
 
 def _obs(state, s, X):
-    Jf, JX = np.empty((2, 12)), np.empty((2, 3))
-    R, p, w, v = state
-    ex, ey, ok = rp._observe(rp._rows(R), tuple(p), tuple(w), tuple(v), s, tuple(X),
+    Jf, JX = np.empty((2, NP)), np.empty((2, 3))
+    R, p, w, v, a = state
+    ex, ey, ok = rp._observe(rp._rows(R), tuple(p), tuple(w), tuple(v), tuple(a), s, tuple(X),
                              (0.1, -0.05), FOCAL, Jf, JX)  # fmt: skip
     assert ok
     return np.array([ex, ey]), Jf, JX
@@ -42,7 +45,7 @@ def test_observation_jacobians_match_finite_differences(rng):
         s = rng.uniform(-0.015, 0.015)
         e0, Jf, JX = _obs(state, s, X)
         scale = np.abs(Jf).max() + np.abs(JX).max()
-        for k in range(12):
+        for k in range(NP):
             h = 1e-6
             num = (_obs(_perturb(state, k, h), s, X)[0] - _obs(_perturb(state, k, -h), s, X)[0])
             assert np.allclose(num / (2 * h), Jf[:, k], atol=TOL["jacobian_rel"] * scale), k
@@ -56,22 +59,23 @@ def test_observation_jacobians_match_finite_differences(rng):
 def test_landmark_jacobians_match_finite_differences(rng):
     state = _frame(rng)
     xa, sa, rho = (0.2, -0.1), 0.008, 0.25
-    JA, Jrho = np.empty((3, 12)), np.empty(3)
+    JA, Jrho = np.empty((3, NP)), np.empty(3)
 
     def point(st, r):
-        R, p, w, v = st
-        return np.array(rp._landmark(rp._rows(R), tuple(p), tuple(w), tuple(v), sa, xa, r,
-                                     np.empty((3, 12)), np.empty(3)))  # fmt: skip
+        R, p, w, v, a = st
+        return np.array(rp._landmark(rp._rows(R), tuple(p), tuple(w), tuple(v), tuple(a), sa,
+                                     xa, r, np.empty((3, NP)), np.empty(3)))  # fmt: skip
 
-    R, p, w, v = state
-    rp._landmark(rp._rows(R), tuple(p), tuple(w), tuple(v), sa, xa, rho, JA, Jrho)
-    for k in range(12):
+    R, p, w, v, a = state
+    rp._landmark(rp._rows(R), tuple(p), tuple(w), tuple(v), tuple(a), sa, xa, rho, JA, Jrho)
+    assert np.abs(JA[:, 12:]).max() > 0  # the acceleration moves the anchor's row camera
+    for k in range(NP):
         num = point(_perturb(state, k, 1e-6), rho) - point(_perturb(state, k, -1e-6), rho)
         assert np.allclose(num / 2e-6, JA[:, k], atol=1e-5 * np.abs(JA).max()), k
     num = (point(state, rho + 1e-7) - point(state, rho - 1e-7)) / 2e-7
     assert np.allclose(num, Jrho, rtol=1e-5)
     # the anchor's own row camera sees the point exactly on its bearing, 1/rho away
-    Rs, ps = rp.row_camera(R, p, w, v, sa)
+    Rs, ps = rp.row_camera(R, p, w, v, a, sa)
     Xc = Rs.T @ (point(state, rho) - ps)
     assert np.allclose(Xc, np.array([xa[0], xa[1], 1.0]) / rho)
 
@@ -83,30 +87,33 @@ def _scene(rng, n=150):
 
 def _project(state, X, tau, row_ref, K_f, iterations=30):
     """Exact RS projection (fixed point on the row) -> normalized coords and row times."""
-    R, p, w, v = state
+    R, p, w, v, a = state
     s = np.zeros(len(X))
     for _ in range(iterations):
         x = np.empty((len(X), 2))
         for i in range(len(X)):
-            Rs, ps = rp.row_camera(R, p, w, v, s[i])
+            Rs, ps = rp.row_camera(R, p, w, v, a, s[i])
             Xc = Rs.T @ (X[i] - ps)
             x[i] = Xc[:2] / Xc[2]
         s = (x[:, 1] * K_f + row_ref - row_ref) * tau  # rows measured from the reference row
     return x, s
 
 
-def test_motion_only_tracking_recovers_pose_and_velocities(rng):
+@pytest.mark.parametrize("acc", [(0.0, 0.0, 0.0), (60.0, -30.0, 20.0)])
+def test_motion_only_tracking_recovers_pose_velocities_and_acceleration(rng, acc):
     tau = 40e-6
-    X = _scene(rng)
+    X = _scene(rng, 300)
     truth = (so3_exp([0.02, -0.05, 0.01]), np.array([0.1, -0.05, 0.3]),
-             np.array([0.4, -0.8, 0.2]), np.array([1.5, 0.2, -0.5]))  # fmt: skip
+             np.array([0.4, -0.8, 0.2]), np.array([1.5, 0.2, -0.5]), np.array(acc))  # fmt: skip
     x, s = _project(truth, X, tau, 0.0, FOCAL)
-    start = (np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3))
-    R, p, w, v, res, cost, H = rp.track_frame(*start, X, x, s, FOCAL, 1.0, np.zeros(6),
-                                              np.zeros(6), 50)  # fmt: skip
+    start = (np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
+    R, p, w, v, a, res, cost, H = rp.track_frame(*start, X, x, s, FOCAL, 1.0, np.zeros(6),
+                                                 np.zeros(6), 1e-12, 50)  # fmt: skip
+    assert H.shape == (NP, NP)
     assert np.abs(res).max() < 1e-6
     assert np.allclose(R, truth[0], atol=1e-7) and np.allclose(p, truth[1], atol=1e-7)
     assert np.allclose(w, truth[2], atol=1e-4) and np.allclose(v, truth[3], atol=1e-4)
+    assert np.allclose(a, truth[4], atol=1e-2)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -117,14 +124,14 @@ def test_window_ba_recovers_states_and_depths_from_a_perturbed_start(seed):
     truth = []
     for k in range(K):
         truth.append((so3_exp([0.0, 0.03 * k, 0.01 * k]), np.array([0.25 * k, 0.02 * k, 0.05 * k]),
-                      rng.normal(0, 0.5, 3), rng.normal(0, 1.0, 3) + [1.0, 0, 0]))
+                      rng.normal(0, 0.5, 3), rng.normal(0, 1.0, 3) + [1.0, 0, 0], np.zeros(3)))
     X = _scene(rng, 120)
     obs = [_project(st, X, tau, 0.0, FOCAL) for st in truth]
     # anchor every landmark in frame 0, observed by frames 1..3
     lm_x, lm_s = obs[0][0], obs[0][1]
-    R0, p0, w0, v0 = truth[0]
-    depth = np.array([(rp.row_camera(R0, p0, w0, v0, lm_s[i])[0].T
-                       @ (X[i] - rp.row_camera(R0, p0, w0, v0, lm_s[i])[1]))[2]
+    R0, p0, w0, v0, a0 = truth[0]
+    depth = np.array([(rp.row_camera(R0, p0, w0, v0, a0, lm_s[i])[0].T
+                       @ (X[i] - rp.row_camera(R0, p0, w0, v0, a0, lm_s[i])[1]))[2]
                       for i in range(len(X))])  # fmt: skip
     obs_kf = np.repeat(np.arange(1, K), len(X))
     obs_lm = np.tile(np.arange(len(X)), K - 1)
@@ -134,8 +141,9 @@ def test_window_ba_recovers_states_and_depths_from_a_perturbed_start(seed):
     p = np.stack([t[1] for t in truth])
     w = np.stack([t[2] for t in truth])
     v = np.stack([t[3] for t in truth])
-    # gauge: frames 0 and 1 fixed in pose; velocities and the rest free
-    col = -np.ones((K, 12), np.int64)
+    acc = np.zeros((K, 3))
+    # gauge: frames 0 and 1 fixed in pose; velocities and the rest free, accelerations held
+    col = -np.ones((K, NP), np.int64)
     n = 0
     for k in range(K):
         for i in range(12):
@@ -146,18 +154,20 @@ def test_window_ba_recovers_states_and_depths_from_a_perturbed_start(seed):
     rho_true = 1.0 / depth
     # exact data: zero cost at the truth
     res = np.zeros((len(obs_kf), 2))
-    c = rp._window_cost(R, p, w, v, obs_kf, obs_lm, obs_x, obs_s, np.zeros(len(X), np.int64),
-                        lm_x, lm_s, rho_true, FOCAL, 1.0, mu, p2, res)  # fmt: skip
+    c = rp._window_cost(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s,
+                        np.zeros(len(X), np.int64), lm_x, lm_s, rho_true, FOCAL, 1.0, mu, p2,
+                        0.0, res)  # fmt: skip
     assert c < 1e-12
     # perturbed start converges back
     Rp = R.copy()
     Rp[2:] = Rp[2:] @ so3_exp([0.01, -0.01, 0.005])
     pp = p + [[0, 0, 0], [0, 0, 0], [0.02, -0.01, 0.0], [0.03, 0.0, 0.02]]
     wp, vp = w * 0.8, v * 0.9
-    out = rp.window_lm(Rp, pp, wp, vp, obs_kf, obs_lm, obs_x, obs_s,
+    out = rp.window_lm(Rp, pp, wp, vp, acc, obs_kf, obs_lm, obs_x, obs_s,
                        np.zeros(len(X), np.int64), lm_x, lm_s, rho_true * 1.2, FOCAL, 1.0, mu,
-                       p2, col, n, 100)  # fmt: skip
-    R2, p2_, w2, v2, rho2, res2, cost, it = out
+                       p2, 0.0, col, n, 100)  # fmt: skip
+    R2, p2_, w2, v2, acc2, rho2, res2, cost, it = out
+    assert np.all(acc2 == 0.0)  # held
     assert np.abs(res2).max() < 1e-4
     assert np.allclose(p2_, p, atol=1e-4) and np.allclose(rho2, rho_true, rtol=1e-3)
     assert np.allclose(w2[1:], w[1:], atol=0.05)
