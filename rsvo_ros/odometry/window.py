@@ -56,6 +56,11 @@ class WindowOptions:
     # median parallax (rotation removed) to initialise: a long first baseline (on 6 vehicle
     # sequences 30 px left 4 of them 0.6-2.4 m off, 80 px one; on 5 walks 60-100 px alike)
     init_parallax_px: float = 80.0
+    # ... and at least this much of it left by the best rotation (translation parallax): a
+    # vehicle turning along its road reached 80 px mostly by turning in 2-3 frames, and the
+    # map started from that short baseline was off by degrees per frame (10 of 20 vehicle
+    # table sequences 0.9-2.5 m off with 0, 2 with 20; walks alike; README) (0: no check)
+    init_translation_parallax_px: float = 20.0
     keyframe_parallax_px: float = 25.0  # ... since the last keyframe that makes a keyframe
     keyframe_track_ratio: float = 0.7  # map points tracked vs at the last keyframe
     keyframe_max_interval_s: float = 0.4
@@ -348,6 +353,12 @@ class WindowOdometry:
             par = self._translation_parallax_px(ref, obs) * REINIT_PARALLAX_FACTOR
         if par < self.options.init_parallax_px * self._px:
             return WindowResult("held", f"initialising: parallax {par:.1f} px", ref.state)
+        need = self.options.init_translation_parallax_px * self._px
+        if self._origin is None and need > 0:
+            par_t = self._translation_parallax_px(ref, obs)
+            if par_t < need:
+                return WindowResult("held", f"initialising: translation parallax {par_t:.1f} "
+                                            f"px", ref.state)  # fmt: skip
         dt = (stamp_ns - ref.state.stamp_ns) * 1e-9
         res, ia, ib = self._pair(ref.obs, obs, dt, self.seed + self._next_kf)
         if res is None:
