@@ -304,3 +304,27 @@ def test_a_tracking_pose_that_explains_under_half_its_points_is_not_taken():
         assert len(wo.map.keyframes) >= keyframes - 1
     assert reasons[0.0] == ""  # tracked
     assert reasons[0.5] != "", reasons  # not by tracking: recovered by the pair, or held
+
+
+def test_the_first_map_waits_for_translation_parallax_not_only_image_motion():
+    """A camera turning fast while it moves 10 cm a frame: the image moves 80 px (at 1000 px
+    focal) in two frames; without the translation check (0) the map starts there, with it
+    (the default 20 px) the frames are held, saying why, until the baseline has grown."""
+    rng = np.random.default_rng(1)
+    X = np.column_stack([rng.uniform(-4, 4, 400), rng.uniform(-2, 2, 400),
+                         rng.uniform(4, 12, 400)])  # fmt: skip
+    K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
+    started, reasons = {}, {}
+    for need in (0.0, 20.0):
+        wo = WindowOdometry(K, 0.0, WindowOptions(init_translation_parallax_px=need))
+        reasons[need] = []
+        for k in range(16):
+            st = FrameState(k * 33_333_333, so3_exp([0.0, 0.04 * k, 0.0]),
+                            np.array([0.1 * k, 0.0, 0.02 * k]))  # fmt: skip
+            res = wo.track(st.stamp_ns, _obs_of(st, X, np.arange(len(X)), 0.0))
+            reasons[need].append(res.reason)
+            if len(wo.map.keyframes) >= 2 and need not in started:
+                started[need] = k
+    assert 0.0 in started and 20.0 in started, (started, reasons)
+    assert started[20.0] > started[0.0] + 3
+    assert "translation parallax" in reasons[20.0][started[0.0]]
