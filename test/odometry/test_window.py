@@ -91,8 +91,8 @@ def test_window_backend_follows_a_smooth_walk_on_exact_tracks(tau):
     states, X = _walk_states(60, tau)
     K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
     wo = WindowOdometry(K, tau)
-    est, gt = {}, {}
-    for st in states:
+    est, gt, first = {}, {}, None
+    for k, st in enumerate(states):
         Xc = (X - st.p) @ st.R
         vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
                              & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
@@ -100,7 +100,10 @@ def test_window_backend_follows_a_smooth_walk_on_exact_tracks(tau):
         gt[st.stamp_ns] = st.pose(-180.0 * tau)  # row 0: 180 rows above the reference row
         if res.status == "posed":
             est[st.stamp_ns] = wo.row0_pose(res.state)
-    assert len(est) >= 50
+            first = k if first is None else first
+    # the map starts within 0.4 s (the translation parallax; 8 frames before that check) and
+    # every frame after is posed
+    assert first is not None and first <= 12 and len(est) == len(states) - first
     assert len(wo.map.keyframes) >= 4 and len(wo.map.landmarks) > 100
     assert accuracy(gt, est)["ate_m"]["rmse"] < 0.01
 
@@ -134,7 +137,8 @@ def test_angular_acceleration_within_the_readout_is_estimated_when_enabled():
         st.a = np.array([50 * np.sin(2 * np.pi * 10 * t), 40 * np.cos(2 * np.pi * 10 * t), 10.0])
     results = {}
     for std in (0.0, 50.0):
-        options = WindowOptions(map=MapOptions(prior_acc_rad_s2=std))
+        options = WindowOptions(map=MapOptions(prior_acc_rad_s2=std),
+                                init_translation_parallax_px=0.0)  # the map at frame 8
         results[std] = _run_exact(states, X, tau, options, np.random.default_rng(0))
     (ate_cv, acc_cv, n_cv), (ate_ca, acc_ca, n_ca) = results[0.0], results[50.0]
     assert n_cv >= 50 and n_ca >= 50
@@ -166,7 +170,9 @@ def test_window_pipeline_on_a_rendered_walk_beats_the_pairwise_chain():
         assert held <= 3  # the first frame pairs of a slow walk may lack parallax
         if backend == "window":
             assert keyframes >= 2 and r.velocity is not None
-    assert ate["window"] < 0.7 * ate["pairwise"], ate
+    # 0.71 (0.186 / 0.261 m); 0.41 before the first map waited for translation parallax,
+    # which starts this short walk's map later (and fixed 8 of 10 failing vehicle runs)
+    assert ate["window"] < 0.8 * ate["pairwise"], ate
 
 
 def test_walk_motion_has_its_features():
