@@ -186,6 +186,8 @@ def track_frame(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, a
     H = np.zeros((FRAME_PARAMS, FRAME_PARAMS))
     g = np.zeros(FRAME_PARAMS)
     lam = 1e-3
+    # a held acceleration's rows of the normal equations stay zero: not accumulated
+    n_par = FRAME_PARAMS if acc_p2 > 0 else FRAME_PARAMS - 3
     cost = _track_cost(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, acc_p2)
     for _ in range(iterations):
         H[:] = 0.0
@@ -199,12 +201,12 @@ def track_frame(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, a
             if not ok:
                 continue
             wt = 1.0 / (1.0 + (ex * ex + ey * ey) / (robust * robust))
-            for i1 in range(FRAME_PARAMS):
+            for i1 in range(n_par):
                 ja0, ja1 = wt * Jf[0, i1], wt * Jf[1, i1]
                 g[i1] += ja0 * ex + ja1 * ey
-                for i2 in range(i1, FRAME_PARAMS):
+                for i2 in range(i1, n_par):
                     H[i1, i2] += ja0 * Jf[0, i2] + ja1 * Jf[1, i2]
-        for i1 in range(FRAME_PARAMS):
+        for i1 in range(n_par):
             for i2 in range(i1):
                 H[i1, i2] = H[i2, i1]
         for j in range(3):
@@ -215,11 +217,8 @@ def track_frame(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, a
             if acc_p2 > 0:
                 H[12 + j, 12 + j] += acc_p2
                 g[12 + j] += acc_p2 * a[j]
-            else:  # held: the acceleration's rows and columns leave the system
-                H[12 + j, :] = 0.0
-                H[:, 12 + j] = 0.0
+            else:  # held: the acceleration leaves the system (its rows and columns are 0)
                 H[12 + j, 12 + j] = 1.0
-                g[12 + j] = 0.0
         improved = False
         while lam < LAMBDA_MAX:
             A = H.copy()

@@ -213,9 +213,9 @@ class MethodResult:
 
 
 def evaluate_pair(tracks: PairTracks, readout: float = DEFAULT_READOUT,
-                  frame_interval: float = DEFAULT_FRAME_INTERVAL_S,
-                  seed: int = 0) -> list[MethodResult]:  # fmt: skip
-    """Every method of :data:`METHODS` on one pair."""
+                  frame_interval: float = DEFAULT_FRAME_INTERVAL_S, seed: int = 0,
+                  methods: tuple[str, ...] = tuple(METHODS)) -> list[MethodResult]:  # fmt: skip
+    """Each of ``methods`` (default: every one of :data:`METHODS`) on one pair."""
     p0, p1 = tracks.pts
     r0, r1 = tracks.rows if tracks.rows is not None else (p0[:, 1], p1[:, 1])
     K = tracks.K
@@ -223,7 +223,8 @@ def evaluate_pair(tracks: PairTracks, readout: float = DEFAULT_READOUT,
     tau = readout * frame_interval / height
     row_mid = (height - 1.0) / 2.0
     out = []
-    for label, (model, stream) in METHODS.items():
+    for label in methods:
+        model, stream = METHODS[label]
         t0 = time.perf_counter()
         if model == "opencv":
             R, t, mask = opencv_magsac(p0, p1, K, seed)
@@ -437,19 +438,24 @@ def plot(path: Path, pairs: list[RealPair], tracks: list[PairTracks], readout: f
 
 
 def _auto_report(est: ReadoutEstimate, tracks: list[PairTracks], assumed: float,
-                 frame_interval: float, seed: int) -> dict:  # fmt: skip
+                 assumed_results: list[MethodResult], frame_interval: float,
+                 seed: int) -> dict:  # fmt: skip
     """The estimate, and the stream mode's unrolling (pooled median, px) with it and with the
-    assumed readout."""
-    out = asdict(est) | {"assumed_readout": assumed}
+    assumed readout (from ``assumed_results``, the evaluation at ``assumed``)."""
     method = "ours rs, stream"
-    for key, readout in (("estimate", est.readout), ("assumed", assumed)):
-        if readout is None:
-            out[f"unroll_px_median_{key}"] = None
-            continue
-        res = [r for tr in tracks for r in evaluate_pair(tr, readout, frame_interval, seed)
-               if r.method == method]
-        out[f"unroll_px_median_{key}"] = float(np.median(sum((r.unroll_px for r in res), [])))
-        out["nothing_px_median"] = float(np.median(sum((r.nothing_px for r in res), [])))
+
+    def pooled(results: list[MethodResult], field: str) -> float:
+        return float(np.median(sum((getattr(r, field) for r in results
+                                    if r.method == method), [])))
+
+    out = asdict(est) | {"assumed_readout": assumed,
+                         "unroll_px_median_assumed": pooled(assumed_results, "unroll_px"),
+                         "nothing_px_median": pooled(assumed_results, "nothing_px"),
+                         "unroll_px_median_estimate": None}
+    if est.readout is not None:
+        res = [r for tr in tracks
+               for r in evaluate_pair(tr, est.readout, frame_interval, seed, (method,))]
+        out["unroll_px_median_estimate"] = pooled(res, "unroll_px")
     return out
 
 
@@ -471,12 +477,12 @@ def run(root: Path, output: Path, readout: float | str = DEFAULT_READOUT,
         raise ValueError(f"frame interval must be > 0 s, got {frame_interval}")
     pairs = load_pairs(root)
     tracks = [prepare(p, focal) for p in pairs]
+    readout = DEFAULT_READOUT if auto else readout
+    results = [r for tr in tracks for r in evaluate_pair(tr, readout, frame_interval, seed)]
     auto_report = None
     if auto:
         est = estimate_readout(tracks, frame_interval, seed=seed)
-        auto_report = _auto_report(est, tracks, DEFAULT_READOUT, frame_interval, seed)
-        readout = DEFAULT_READOUT
-    results = [r for tr in tracks for r in evaluate_pair(tr, readout, frame_interval, seed)]
+        auto_report = _auto_report(est, tracks, readout, results, frame_interval, seed)
     summary = summarize(results)
     report = {
         "root": str(root), "readout_frame_intervals": readout, "readout_auto": auto_report,
@@ -524,7 +530,7 @@ def run_realistic(output: Path, count: int | None = None, seed: int = 0,
                                   "table": format_tables(results, summary).split("\n\n")[0]}
         if auto:  # the estimate from the RS tracks alone, against the rendered readout
             report["groups"][name]["readout_auto"] = _auto_report(
-                estimate_readout(tracks, seed=seed), tracks, readout,
+                estimate_readout(tracks, seed=seed), tracks, readout, results,
                 DEFAULT_FRAME_INTERVAL_S, seed)
     output.mkdir(parents=True, exist_ok=True)
     with open(output / "realistic.json", "w") as f:
