@@ -297,10 +297,11 @@ def _window_cost(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x,
 
 @nb.njit(**JIT)
 def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
-                   focal, robust, mu, p2, acc_p2, col, Hcc, gc, Hcp, hpp, gp):  # fmt: skip
+                   focal, robust, mu, p2, acc_p2, col, n_par, Hcc, gc, Hcp, hpp, gp):  # fmt: skip
     """Normal equations of the window with IRLS weights of the Cauchy loss: the frames'
     block ``Hcc``/``gc`` (columns ``col[k, i]``, -1 for fixed parameters), the frame x
-    landmark blocks ``Hcp`` (K, M, 15), the landmarks' ``hpp``/``gp`` (M,)."""
+    landmark blocks ``Hcp`` (K, M, 15), the landmarks' ``hpp``/``gp`` (M,); over the first
+    ``n_par`` frame parameters (12: every acceleration held)."""
     K = R.shape[0]
     JA = np.empty((3, FRAME_PARAMS))
     Jrho = np.empty(3)
@@ -323,7 +324,7 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
             continue
         wt = 1.0 / (1.0 + (ex * ex + ey * ey) / r2)
         for r in range(2):
-            for i in range(FRAME_PARAMS):
+            for i in range(n_par):
                 Ja[r, i] = JX[r, 0] * JA[0, i] + JX[r, 1] * JA[1, i] + JX[r, 2] * JA[2, i]
             jr[r] = JX[r, 0] * Jrho[0] + JX[r, 1] * Jrho[1] + JX[r, 2] * Jrho[2]
         e = (ex, ey)
@@ -332,7 +333,7 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
         for side in range(2):
             f = k if side == 0 else a
             J1 = Jf if side == 0 else Ja
-            for i in range(FRAME_PARAMS):
+            for i in range(n_par):
                 Hcp[f, j, i] += wt * (J1[0, i] * jr[0] + J1[1, i] * jr[1])
                 ci = col[f, i]
                 if ci < 0:
@@ -341,7 +342,7 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
                 for side2 in range(2):
                     f2 = k if side2 == 0 else a
                     J2 = Jf if side2 == 0 else Ja
-                    for i2 in range(FRAME_PARAMS):
+                    for i2 in range(n_par):
                         c2 = col[f2, i2]
                         if c2 < 0:
                             continue
@@ -370,6 +371,8 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
     and the iterations run."""
     R, p, w, v, acc, rho = R.copy(), p.copy(), w.copy(), v.copy(), acc.copy(), rho.copy()
     K, M = R.shape[0], rho.shape[0]
+    # every acceleration held (the default): the loops stop after the 12 other parameters
+    n_par = FRAME_PARAMS if np.any(col[:, 12:] >= 0) else FRAME_PARAMS - 3
     Hcc = np.zeros((n_cols, n_cols))
     gc = np.zeros(n_cols)
     Hcp = np.zeros((K, M, FRAME_PARAMS))
@@ -388,7 +391,7 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007
         _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s,
-                       rho, focal, robust, mu, p2, acc_p2, col, Hcc, gc, Hcp, hpp, gp)
+                       rho, focal, robust, mu, p2, acc_p2, col, n_par, Hcc, gc, Hcp, hpp, gp)
         accepted = False
         while lam < LAMBDA_MAX:
             # Schur complement on the landmarks (damped like the rest)
@@ -403,7 +406,7 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
                 for k1 in range(K):
                     if not seen[j, k1]:
                         continue
-                    for i1 in range(FRAME_PARAMS):
+                    for i1 in range(n_par):
                         c1 = col[k1, i1]
                         if c1 < 0:
                             continue
@@ -412,7 +415,7 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
                         for k2 in range(K):
                             if not seen[j, k2]:
                                 continue
-                            for i2 in range(FRAME_PARAMS):
+                            for i2 in range(n_par):
                                 c2 = col[k2, i2]
                                 if c2 >= 0:
                                     S[c1, c2] -= h1 * Hcp[k2, j, i2]
@@ -434,7 +437,7 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
                 for k in range(K):
                     if not seen[j, k]:
                         continue
-                    for i in range(FRAME_PARAMS):
+                    for i in range(n_par):
                         if col[k, i] >= 0:
                             gj += Hcp[k, j, i] * dc[col[k, i]]
                 rho_c[j] = min(max(rho[j] - gj * inv[j], RHO_MIN), RHO_MAX)
