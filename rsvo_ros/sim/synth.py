@@ -471,6 +471,12 @@ class SequenceRenderer:
                                               ShakeModel.create(config.motion, config.severity,
                                                                 rng))  # fmt: skip
 
+    @property
+    def trajectory(self) -> ContinuousTrajectory | WalkTrajectory | None:
+        """The continuous camera trajectory (``pose(t)``, ``velocity(t)``); None for the paper
+        motion, whose frames are drawn one by one."""
+        return self._traj
+
     def frame_pose(self, k: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           RowPoseFn]:  # fmt: skip
         cfg = self.config

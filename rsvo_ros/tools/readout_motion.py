@@ -46,7 +46,8 @@ def parse_case(text: str, frames: int) -> SynthConfig:
 def unexplained_px(config: SynthConfig) -> dict[str, np.ndarray]:
     """Per frame (frames 2 to N-2), the RMS rotation (px) each model leaves unexplained."""
     renderer = SequenceRenderer(config)
-    if renderer._traj is None:
+    trajectory = renderer.trajectory
+    if trajectory is None:
         raise ValueError("the paper motion has no continuous trajectory")
     K = intrinsics(config.width, config.height)
     focal, row_ref, tau = K[0, 0], K[1, 2], config.tau
@@ -56,8 +57,8 @@ def unexplained_px(config: SynthConfig) -> dict[str, np.ndarray]:
     out = {name: [] for name in bases}
     for k in range(2, config.frames - 2):
         t0 = k / config.rate_hz
-        R_rows, _ = renderer._traj.pose(t0 + rows * tau)
-        R_ref, _ = renderer._traj.pose(np.array([t0 + row_ref * tau]))
+        R_rows, _ = trajectory.pose(t0 + rows * tau)
+        R_ref, _ = trajectory.pose(np.array([t0 + row_ref * tau]))
         phi = so3_log(np.einsum("ji,njk->nik", R_ref[0], R_rows))  # (n, 3)
         for name, A in bases.items():
             e = phi if A is None else phi - A @ np.linalg.lstsq(A, phi, rcond=None)[0]

@@ -178,7 +178,7 @@ def test_window_pipeline_on_a_rendered_walk_beats_the_pairwise_chain():
 def test_walk_motion_has_its_features():
     """rsvo_synth --motion walk: walking speed, a stop with pure rotation in long sequences."""
     cfg = SynthConfig(frames=300, motion="walk", severity=1.0, seed=2)
-    traj = SequenceRenderer(cfg)._traj
+    traj = SequenceRenderer(cfg).trajectory
     t = np.arange(300) / 30.0
     R, p = traj.pose(t)
     speed = np.linalg.norm(np.diff(p, axis=0), axis=1) * 30.0
