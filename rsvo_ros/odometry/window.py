@@ -61,6 +61,12 @@ class WindowOptions:
     # map started from that short baseline was off by degrees per frame (10 of 20 vehicle
     # table sequences 0.9-2.5 m off with 0, 2 with 20; walks alike; README) (0: no check)
     init_translation_parallax_px: float = 20.0
+    # ... and a pair whose rotation the images pin down: its standard deviation (the pair
+    # estimator's covariance, velocities marginalised) at most this, until the translation
+    # parallax is twice the above (then any pair). The two failing vehicle table sequences
+    # started their maps from pairs of 1.6 and 3.3 deg and stayed off for 20 frames; good
+    # starts had 0.1-0.6 deg (README) (0: no check)
+    init_max_rotation_std_deg: float = 1.0
     keyframe_parallax_px: float = 25.0  # ... since the last keyframe that makes a keyframe
     keyframe_track_ratio: float = 0.7  # map points tracked vs at the last keyframe
     keyframe_max_interval_s: float = 0.4
@@ -110,6 +116,7 @@ class PairMotion:
     inliers: np.ndarray
     depths_prev: np.ndarray
     num_inliers: int
+    rotation_std_deg: float = 0.0  # of the pair's rotation (its covariance); inf: unconstrained
 
 
 @dataclass
@@ -230,8 +237,10 @@ class WindowOdometry:
             w_p = w_c = so3_log(R_m.T) / dt if gs_cv else np.zeros(3)
             v_c = -t_m / dt if gs_cv else np.zeros(3)
             v_p = R_m.T @ v_c
+        rot_var = float(np.trace(res.covariance[:3, :3]))
+        rot_std = float(np.degrees(np.sqrt(rot_var))) if np.isfinite(rot_var) else np.inf
         return PairMotion(R_m, t_m, (w_p, v_p), (w_c, v_c), res.inliers, res.depths_prev,
-                          res.num_inliers), ia, ib
+                          res.num_inliers, rot_std), ia, ib
 
     def _states_from_pair(self, motion: PairMotion, first: FrameState, stamp_ns: int,
                           scale: float) -> tuple[FrameState, tuple, tuple]:  # fmt: skip
@@ -354,6 +363,7 @@ class WindowOdometry:
         if par < self.options.init_parallax_px * self._px:
             return WindowResult("held", f"initialising: parallax {par:.1f} px", ref.state)
         need = self.options.init_translation_parallax_px * self._px
+        par_t = np.inf
         if self._origin is None and need > 0:
             par_t = self._translation_parallax_px(ref, obs)
             if par_t < need:
@@ -363,6 +373,10 @@ class WindowOdometry:
         res, ia, ib = self._pair(ref.obs, obs, dt, self.seed + self._next_kf)
         if res is None:
             return WindowResult("held", "initialising: no pose from the pair", ref.state)
+        max_std = self.options.init_max_rotation_std_deg
+        if self._origin is None and res.rotation_std_deg > max_std > 0 and par_t < 2 * need:
+            why = f"the pair's rotation is uncertain ({res.rotation_std_deg:.1f} deg std)"
+            return WindowResult("held", f"initialising: {why}", ref.state)
         scale = self.initial_scale
         if self._origin is not None and np.linalg.norm(self._origin.v) > 0:
             scale = float(np.linalg.norm(self._origin.v)) * dt  # keep the speed across a loss

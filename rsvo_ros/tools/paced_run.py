@@ -17,28 +17,12 @@ import collections
 import json
 import sys
 import time
-from dataclasses import fields
 
 import numpy as np
 
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
-from rsvo_ros.odometry.window import WindowOptions
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
-from rsvo_ros.tools.replay import accuracy
-
-NUMERIC_WINDOW_OPTIONS = {f.name for f in fields(WindowOptions) if f.type in ("int", "float")}
-
-
-def _window_option(text: str) -> tuple[str, float]:
-    name, _, value = text.partition("=")
-    if name not in NUMERIC_WINDOW_OPTIONS:
-        known = ", ".join(sorted(NUMERIC_WINDOW_OPTIONS))
-        raise argparse.ArgumentTypeError(f"{name!r} is not a numeric WindowOptions field "
-                                         f"({known})")
-    try:
-        return name, float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: the value is not a number") from None
+from rsvo_ros.tools.replay import accuracy, set_window_options, window_option_arg
 
 
 def paced_run(frames: int, rate: float, mapping: str, seed: int, width: int, height: int,
@@ -49,9 +33,7 @@ def paced_run(frames: int, rate: float, mapping: str, seed: int, width: int, hei
     rendered = list(renderer)
     options = PipelineOptions()
     options.window.async_mapping = mapping == "async"
-    for name, value in window_options:
-        kind = type(getattr(options.window, name))
-        setattr(options.window, name, kind(value))
+    set_window_options(options, window_options)
     pipeline = OdometryPipeline(renderer.K, None, cfg.tau, options)
     est, gt, times, slow = {}, {}, [], []
     outcomes: collections.Counter = collections.Counter()
@@ -86,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mapping", choices=("async", "inline"), default="async")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--resolution", default="640x480", help="WIDTHxHEIGHT")
-    ap.add_argument("--window-option", type=_window_option, action="append", default=[],
+    ap.add_argument("--window-option", type=window_option_arg, action="append", default=[],
                     metavar="NAME=VALUE", help="a numeric WindowOptions field (repeatable)")
     ap.add_argument("--slow-ms", type=float, default=None, help="list frames slower than this")
     args = ap.parse_args(argv)

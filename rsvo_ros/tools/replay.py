@@ -15,7 +15,7 @@ import shutil
 import sys
 import time
 from collections import Counter, deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,7 @@ from rsvo_ros.odometry.pipeline import (
     warm_up,
 )
 from rsvo_ros.odometry.tracker import TrackerOptions
+from rsvo_ros.odometry.window import WindowOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import (
     POINT_FIELD_FLOAT32,
@@ -54,6 +55,9 @@ MAP_PERIOD_NS = 1_000_000_000  # map points and keyframe path: once per second o
 ODOM_FRAME = "odom"
 SCALE_CHECK_FRAMES = 60  # scale drift: the whole run's Sim(3) scale against these first frames
 TF_TYPE, CLOUD_TYPE = "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/PointCloud2"
+
+# the WindowOptions fields --window-option may set
+NUMERIC_WINDOW_OPTIONS = {f.name for f in fields(WindowOptions) if f.type in ("int", "float")}
 
 
 class ReplayError(Exception):
@@ -344,6 +348,8 @@ def replay(cfg: ReplayConfig) -> dict:
         "motion_prior": options.motion_prior,
         "async_mapping": options.window.async_mapping,
         "angular_acceleration_std": options.window.map.prior_acc_rad_s2,
+        # numeric WindowOptions fields away from their defaults (--window-option)
+        "window_options_changed": changed_window_options(options.window),
         # the line delay used at the end (line_delay auto: the estimate, see line_delay_auto)
         "line_delay_s": pipeline.line_delay if pipeline is not None else line_delay,
         "image_topic": cfg.image_topic, "frames_in_bag": n_images,
@@ -526,6 +532,36 @@ def _line_delay_arg(text: str):
             f"line delay must be seconds per row or auto, got {text!r}") from None
 
 
+def window_option_arg(text: str) -> tuple[str, float]:
+    """``NAME=VALUE`` of a numeric :class:`WindowOptions` field (argparse type)."""
+    name, _, value = text.partition("=")
+    if name not in NUMERIC_WINDOW_OPTIONS:
+        known = ", ".join(sorted(NUMERIC_WINDOW_OPTIONS))
+        raise argparse.ArgumentTypeError(f"{name!r} is not a numeric WindowOptions field "
+                                         f"({known})")
+    try:
+        number = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: the value is not a number") from None
+    if not np.isfinite(number):
+        raise argparse.ArgumentTypeError(f"{text!r}: the value must be finite")
+    return name, number
+
+
+def changed_window_options(window: WindowOptions) -> dict[str, float]:
+    """The numeric :class:`WindowOptions` fields of ``window`` that differ from the defaults."""
+    default = WindowOptions()
+    return {name: getattr(window, name) for name in sorted(NUMERIC_WINDOW_OPTIONS)
+            if getattr(window, name) != getattr(default, name)}
+
+
+def set_window_options(options: PipelineOptions, values: list[tuple[str, float]]) -> None:
+    """Set numeric :class:`WindowOptions` fields (from :func:`window_option_arg`)."""
+    for name, value in values:
+        kind = type(getattr(options.window, name))
+        setattr(options.window, name, kind(value))
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rsvo_replay",
                                 description="Run rsvo_ros's odometry pipeline over a rosbag2.")
@@ -556,6 +592,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="window backend, RS: std (rad/s^2) of the prior on each frame's angular "
                         "acceleration during its readout (default 0: constant velocity within "
                         "a frame; about 50 for hand-held video with strong shake)")
+    p.add_argument("--window-option", type=window_option_arg, action="append", default=[],
+                   metavar="NAME=VALUE",
+                   help="window backend: set a numeric WindowOptions field, e.g. "
+                        "init_max_rotation_std_deg=0 (repeatable; for A/B runs)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -582,6 +622,7 @@ def main(argv: list[str] | None = None) -> int:
                               line_delay_auto=auto)
     options.window.async_mapping = args.async_mapping
     options.window.map.prior_acc_rad_s2 = args.angular_acceleration
+    set_window_options(options, args.window_option)
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
                        args.camera_info_topic, args.ground_truth_topic,
                        None if auto else args.line_delay,

@@ -296,3 +296,24 @@ def test_angular_acceleration_flag_reaches_the_window_and_is_checked(vehicle_bag
     assert replay_main([str(vehicle_bag), "--output", str(tmp_path / "bad"),
                         "--angular-acceleration", "-1", "--no-progress"]) == 2
     assert "--angular-acceleration" in capsys.readouterr().err
+
+
+def test_window_option_flag_sets_a_field_records_it_and_is_checked(vehicle_bag, tmp_path,
+                                                                   capsys):
+    out = tmp_path / "opt"
+    assert replay_main([str(vehicle_bag), "--output", str(out), "--window-option",
+                        "init_max_rotation_std_deg=0", "--window-option", "min_landmarks=25",
+                        "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["window_options_changed"] == {"init_max_rotation_std_deg": 0.0,
+                                           "min_landmarks": 25}
+    assert s["frames_posed"] == s["frames_in"] == 8
+    default = tmp_path / "default"
+    assert replay_main([str(vehicle_bag), "--output", str(default), "--no-progress"]) == 0
+    assert json.loads((default / "summary.json").read_text())["window_options_changed"] == {}
+    for bad, message in (("nope=1", "not a numeric WindowOptions field"),
+                         ("min_landmarks=inf", "the value must be finite")):
+        with pytest.raises(SystemExit):
+            replay_main([str(vehicle_bag), "--output", str(tmp_path / "bad"),
+                         "--window-option", bad])
+        assert message in capsys.readouterr().err
