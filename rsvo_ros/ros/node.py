@@ -73,7 +73,13 @@ class RsvoNode(Node):
         self.get_logger().info("loading the solver kernels (the first run after an install "
                                "compiles them: about a minute)")
         self.get_logger().info(f"solver ready in {warm_up():.1f} s")
+        # _lock: the hand-over between the image callback and the worker (held for
+        # microseconds); _pipeline_lock: the pipeline (held while a frame is processed). The
+        # image callback never waits for a frame's processing: while it did, a slow frame kept
+        # the callbacks from taking new images and DDS overwrote them unseen (runs of 10-40
+        # frames at 30 Hz, README)
         self._lock = threading.Lock()
+        self._pipeline_lock = threading.Lock()
         self._pending: tuple | None = None
         self._waiting: tuple | None = None  # the newest image that came before camera info
         self._wake = threading.Event()
@@ -162,8 +168,9 @@ class RsvoNode(Node):
             return
         self._camera = (cam.K, cam.lens, cam.width, cam.height)
         if self.pipeline is None:  # build it now, not on the first image (keeps that one fast)
-            with self._lock:
+            with self._pipeline_lock:
                 self._ensure_pipeline()
+            with self._lock:
                 if self._waiting is not None and self._pending is None:
                     self._pending, self._waiting = self._waiting, None
                     self._wake.set()
@@ -178,7 +185,7 @@ class RsvoNode(Node):
         self._wake.set()
 
     def _on_clock_jump(self, jump) -> None:
-        with self._lock:
+        with self._pipeline_lock:
             if self.pipeline is not None:
                 self.pipeline.reset()
             self._path.clear()
@@ -187,7 +194,7 @@ class RsvoNode(Node):
                                   "the next frame starts a new trajectory")
 
     def _on_reset(self, request, response):
-        with self._lock:
+        with self._pipeline_lock:
             if self.pipeline is not None:
                 self.pipeline.reset()
             self._path.clear()
@@ -197,7 +204,7 @@ class RsvoNode(Node):
         return response
 
     def _ensure_pipeline(self) -> None:
-        """Create the pipeline once the camera is known (call with the lock held)."""
+        """Create the pipeline once the camera is known (call with _pipeline_lock held)."""
         if self.pipeline is not None or self._camera is None:
             return
         K, D, _, _ = self._camera
@@ -253,7 +260,7 @@ class RsvoNode(Node):
             self._bad("image size differs from camera info")
             return
         t0 = time.perf_counter()
-        with self._lock:
+        with self._pipeline_lock:
             self._ensure_pipeline()
             self.pipeline.set_camera(K, D, float(self.p["line_delay"]))
             res = self.pipeline.process(stamp_ns(msg.header), gray)

@@ -181,6 +181,39 @@ def test_frames_arriving_while_busy_are_dropped_not_queued(ros_context):
         h.close()
 
 
+def test_the_image_callback_never_waits_for_a_frame_being_processed(ros_context):
+    """While the pipeline works on a frame, new images are still taken (and counted): the
+    callback used to wait for the processing, and DDS overwrote the images it did not take
+    (runs of 10-40 unseen frames at 30 Hz, README)."""
+    h = Harness(ros_context, [Parameter("model", value="gs")])
+    try:
+        info, msgs = _frames(5)
+        h.node._on_info(info)  # builds the pipeline
+        gate, inside = threading.Event(), threading.Event()
+        original = h.node.pipeline.process
+
+        def slow(stamp, gray):  # the pipeline busy with a frame (under its lock)
+            inside.set()
+            gate.wait(20.0)
+            return original(stamp, gray)
+
+        h.node.pipeline.process = slow
+        h.node._on_image(msgs[0])
+        assert inside.wait(10.0)
+        callbacks = threading.Thread(target=lambda: [h.node._on_image(m) for m in msgs[1:]])
+        callbacks.start()
+        callbacks.join(timeout=5.0)
+        done_while_busy = not callbacks.is_alive()
+        received_while_busy = h.node.stats["received"]
+        gate.set()
+        callbacks.join(timeout=20.0)
+        h._idle()
+        assert done_while_busy and received_while_busy == 5
+        assert h.node.stats["dropped"] == 3 and h.node.stats["processed"] == 2
+    finally:
+        h.close()
+
+
 def test_looped_input_resets_and_gives_two_trajectories(ros_context):
     """Time going back (a looped bag, a restarted simulator) resets the odometry: the second
     pass is a new trajectory from the origin, counted in the diagnostics."""
