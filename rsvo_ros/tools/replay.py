@@ -545,6 +545,8 @@ def window_option_arg(text: str) -> tuple[str, float]:
         raise argparse.ArgumentTypeError(f"{text!r}: the value is not a number") from None
     if not np.isfinite(number):
         raise argparse.ArgumentTypeError(f"{text!r}: the value must be finite")
+    if isinstance(getattr(WindowOptions(), name), int) and number != int(number):
+        raise argparse.ArgumentTypeError(f"{text!r}: {name} takes a whole number")
     return name, number
 
 

@@ -312,7 +312,8 @@ def test_window_option_flag_sets_a_field_records_it_and_is_checked(vehicle_bag, 
     assert replay_main([str(vehicle_bag), "--output", str(default), "--no-progress"]) == 0
     assert json.loads((default / "summary.json").read_text())["window_options_changed"] == {}
     for bad, message in (("nope=1", "not a numeric WindowOptions field"),
-                         ("min_landmarks=inf", "the value must be finite")):
+                         ("min_landmarks=inf", "the value must be finite"),
+                         ("min_landmarks=2.5", "takes a whole number")):
         with pytest.raises(SystemExit):
             replay_main([str(vehicle_bag), "--output", str(tmp_path / "bad"),
                          "--window-option", bad])
