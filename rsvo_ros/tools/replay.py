@@ -56,8 +56,9 @@ ODOM_FRAME = "odom"
 SCALE_CHECK_FRAMES = 60  # scale drift: the whole run's Sim(3) scale against these first frames
 TF_TYPE, CLOUD_TYPE = "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/PointCloud2"
 
-# the WindowOptions fields --window-option may set
-NUMERIC_WINDOW_OPTIONS = {f.name for f in fields(WindowOptions) if f.type in ("int", "float")}
+# the WindowOptions fields --window-option may set, and their types
+NUMERIC_WINDOW_OPTIONS = {f.name: {"int": int, "float": float}[f.type]
+                          for f in fields(WindowOptions) if f.type in ("int", "float")}
 
 
 class ReplayError(Exception):
@@ -545,7 +546,7 @@ def window_option_arg(text: str) -> tuple[str, float]:
         raise argparse.ArgumentTypeError(f"{text!r}: the value is not a number") from None
     if not np.isfinite(number):
         raise argparse.ArgumentTypeError(f"{text!r}: the value must be finite")
-    if isinstance(getattr(WindowOptions(), name), int) and number != int(number):
+    if NUMERIC_WINDOW_OPTIONS[name] is int and number != int(number):
         raise argparse.ArgumentTypeError(f"{text!r}: {name} takes a whole number")
     return name, number
 
@@ -560,8 +561,7 @@ def changed_window_options(window: WindowOptions) -> dict[str, float]:
 def set_window_options(options: PipelineOptions, values: list[tuple[str, float]]) -> None:
     """Set numeric :class:`WindowOptions` fields (from :func:`window_option_arg`)."""
     for name, value in values:
-        kind = type(getattr(options.window, name))
-        setattr(options.window, name, kind(value))
+        setattr(options.window, name, NUMERIC_WINDOW_OPTIONS[name](value))
 
 
 def build_parser() -> argparse.ArgumentParser:
