@@ -316,8 +316,7 @@ def _global_search(corr: Correspondences, starts: RSBatch, lm: LMOptions,
 
 def fit_null(start: RSBatch, corr: Correspondences, lm: LMOptions,
              frame_interval: float | None, limits: SearchLimits | None = None,
-             robust_scale: float | None = None,
-             iterations: int = NULL_ITERATIONS) -> RSBatch:  # fmt: skip
+             robust_scale: float | None = None) -> RSBatch:
     """The model without free velocities, refined from each of ``start`` (B states; the lowest
     robust cost wins): the GS model (zero velocities; Cauchy loss of ``robust_scale`` px,
     default ``lm.robust_scale_px``, on all of ``corr``) at the reference row. For a video
@@ -333,7 +332,8 @@ def fit_null(start: RSBatch, corr: Correspondences, lm: LMOptions,
         limits = SearchLimits(limits.w_max, limits.v_max,
                               np.repeat(limits.anchor_R[:1], len(state), axis=0),
                               limits.max_rotation_change)  # fmt: skip
-    state, cost, _ = levenberg_marquardt(state, corr, iterations, lambda_init=lm.lambda_init,
+    state, cost, _ = levenberg_marquardt(state, corr, NULL_ITERATIONS,
+                                         lambda_init=lm.lambda_init,
                                          rel_tol=lm.rel_tol,
                                          robust_scale=robust_scale or lm.robust_scale_px,
                                          basis=np.eye(NUM_PARAMS)[:, :5], limits=limits)
@@ -378,11 +378,10 @@ def rs_earns_its_velocities(rs: RSBatch, null: RSBatch, corr: Correspondences, l
         return True  # too few points to judge: keep what the search found
     scale = robust_scale or lm.robust_scale_px
     fold = rng.permutation(n) % HELD_OUT_FOLDS
-    folds = np.arange(HELD_OUT_FOLDS)
-    trains = [corr.subset(fold != k) for k in folds]
     # the RS refits of all folds in one batch: each hypothesis sees its own training points
-    size = min(len(t) for t in trains)
-    idx = np.stack([np.flatnonzero(fold != k)[:size] for k in folds])
+    # (as many for each fold: the smallest training set's size)
+    size = n - int(np.bincount(fold).max())
+    idx = np.stack([np.flatnonzero(fold != k)[:size] for k in range(HELD_OUT_FOLDS)])
     prior_t = None if prior is None else prior * np.sqrt(size / n)
     rs_k = rs.take(np.zeros(HELD_OUT_FOLDS, dtype=int))
     centre = constant_velocity(rs_k, frame_interval) if frame_interval else None
@@ -394,14 +393,19 @@ def rs_earns_its_velocities(rs: RSBatch, null: RSBatch, corr: Correspondences, l
                                      lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
                                      robust_scale=scale, prior_inv_sigma=prior_t, limits=lim,
                                      prior_mean=centre)
-    d = np.empty(n)
-    for k in folds:
-        test = corr.subset(fold == k)
-        null_k = fit_null(null, trains[k], lm, frame_interval, limits, scale,
-                          SELECTION_ITERATIONS)
-        e_rs, e_null = residuals(rs_k.take(k), test)[0], residuals(null_k, test)[0]
-        d[fold == k] = scale**2 * (np.log1p((e_null / scale) ** 2)
-                                   - np.log1p((e_rs / scale) ** 2))
+    # the null refits likewise, in one batch (as fit_null: velocities zero, then centred)
+    null_k = null.take(np.zeros(HELD_OUT_FOLDS, dtype=int))
+    null_k.vel = np.zeros_like(null_k.vel)
+    null_k, _, _ = levenberg_marquardt(null_k, corr, SELECTION_ITERATIONS, idx=idx,
+                                       lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
+                                       robust_scale=scale, basis=np.eye(NUM_PARAMS)[:, :5],
+                                       limits=lim)
+    if frame_interval:
+        null_k.vel = constant_velocity(null_k, frame_interval)
+    # each point judged by the fits of the fold that did not see it
+    own = (fold, np.arange(n))
+    e_rs, e_null = residuals(rs_k, corr)[own], residuals(null_k, corr)[own]
+    d = scale**2 * (np.log1p((e_null / scale) ** 2) - np.log1p((e_rs / scale) ** 2))
     gain = float(d.mean())
     lower_cost = gain > max(SELECTION_Z * float(d.std(ddof=1)) / np.sqrt(n), MIN_GAIN_PX2)
     most = float(np.mean(d > 0)) > 0.5 + SELECTION_Z * 0.5 / np.sqrt(n)
