@@ -326,21 +326,30 @@ def fit_null(start: RSBatch, corr: Correspondences, lm: LMOptions,
     the velocities follow from the motion over the interval. A fit with the velocities locked
     to the pose instead is biased when the line delay is off (on the real pairs with the
     assumed readout: 0.15 deg mean rotation error against 0.08)."""
+    state, cost = _refit_null(start, corr, lm, frame_interval, limits,
+                              robust_scale or lm.robust_scale_px, NULL_ITERATIONS)
+    return state.take(int(np.argmin(cost)))
+
+
+def _refit_null(start: RSBatch, corr: Correspondences, lm: LMOptions,
+                frame_interval: float | None, limits: SearchLimits | None, robust_scale: float,
+                iterations: int, idx: np.ndarray | None = None) -> tuple[RSBatch, np.ndarray]:
+    """:func:`fit_null`'s refinement of every state of ``start`` (each on all of ``corr`` or on
+    its rows ``idx[b]``, within the rotation bound around ``limits``' first anchor): the
+    refined states (velocities zero, or the constant velocity of a stream) and their costs."""
     state = start.take(np.arange(len(start)))
     state.vel = np.zeros_like(state.vel)
     if limits is not None and limits.anchor_R is not None:
         limits = SearchLimits(limits.w_max, limits.v_max,
                               np.repeat(limits.anchor_R[:1], len(state), axis=0),
                               limits.max_rotation_change)  # fmt: skip
-    state, cost, _ = levenberg_marquardt(state, corr, NULL_ITERATIONS,
-                                         lambda_init=lm.lambda_init,
-                                         rel_tol=lm.rel_tol,
-                                         robust_scale=robust_scale or lm.robust_scale_px,
+    state, cost, _ = levenberg_marquardt(state, corr, iterations, idx=idx,
+                                         lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
+                                         robust_scale=robust_scale,
                                          basis=np.eye(NUM_PARAMS)[:, :5], limits=limits)
-    state = state.take(int(np.argmin(cost)))
     if frame_interval:
         state.vel = constant_velocity(state, frame_interval)
-    return state
+    return state, cost
 
 
 def _clearly_rs(rs: RSBatch, null: RSBatch, corr: Correspondences, robust_scale: float,
@@ -393,15 +402,9 @@ def rs_earns_its_velocities(rs: RSBatch, null: RSBatch, corr: Correspondences, l
                                      lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
                                      robust_scale=scale, prior_inv_sigma=prior_t, limits=lim,
                                      prior_mean=centre)
-    # the null refits likewise, in one batch (as fit_null: velocities zero, then centred)
-    null_k = null.take(np.zeros(HELD_OUT_FOLDS, dtype=int))
-    null_k.vel = np.zeros_like(null_k.vel)
-    null_k, _, _ = levenberg_marquardt(null_k, corr, SELECTION_ITERATIONS, idx=idx,
-                                       lambda_init=lm.lambda_init, rel_tol=lm.rel_tol,
-                                       robust_scale=scale, basis=np.eye(NUM_PARAMS)[:, :5],
-                                       limits=lim)
-    if frame_interval:
-        null_k.vel = constant_velocity(null_k, frame_interval)
+    # the null refits likewise, in one batch
+    null_k, _ = _refit_null(null.take(np.zeros(HELD_OUT_FOLDS, dtype=int)), corr, lm,
+                            frame_interval, limits, scale, SELECTION_ITERATIONS, idx)
     # each point judged by the fits of the fold that did not see it
     own = (fold, np.arange(n))
     e_rs, e_null = residuals(rs_k, corr)[own], residuals(null_k, corr)[own]
