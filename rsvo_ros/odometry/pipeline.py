@@ -365,10 +365,17 @@ class OdometryPipeline:
                           inlier_ratio=step.inlier_ratio, relative=step.relative,
                           pts_prev=pair.pts_prev, pts_curr=pair.pts_curr,
                           inliers=step.relative.inliers)  # fmt: skip
-        if bootstrap and not self.window.initialising:
-            self.T_odom_world = np.eye(4)  # the new map starts in the chain's (published) frame
+        started = bootstrap and not self.window.initialising and state is not None
+        if started:
+            # the new map starts where the chain has this frame: the published odometry goes on
+            # without a jump (the map's pose of it differs by the chain's drift since the map's
+            # first keyframe: 4-14 deg on walks, one frame's jump)
+            T_map = self.window.row0_pose(state)
+            T_odom_world = self.chain.T_world_cam @ np.linalg.inv(T_map)
+            self.T_odom_world = T_odom_world if np.isfinite(T_odom_world).all() else np.eye(4)
         if state is not None and out.status == "posed":
-            for before, after in out.ba_moved:  # a BA moved a frame: keep odometry continuous
+            for before, after in [] if started else out.ba_moved:
+                # a BA moved a frame: keep odometry continuous
                 D = rigid_correction(self.window.row0_pose(after), self.window.row0_pose(before))
                 if np.isfinite(D).all():  # never a NaN pose
                     self.T_odom_world = self.T_odom_world @ D
