@@ -22,6 +22,12 @@ of the search. Measured over 16 vehicle sequences, the tighter prior and the ext
 the gain; where the prior is centred (constant velocity or zero) changes the ATE little, but
 only the constant velocity leaves the velocities unbiased.
 
+Short baselines (``ROTATION_ONLY_PARALLAX_PX``): a pair whose tracks a turning camera explains
+to within a pixel or so (a hand-held walk's consecutive frames) is posed by that camera's
+rotation (odometry/rotation.py), the baseline direction that makes each track's rays coplanar
+with it, and the last baseline: the pair estimator's rotation there was 1-2.7 deg per frame
+off, the turning camera's 0.1-0.4 deg (README, "Short baselines").
+
 Scale: the first pair's baseline is ``initial_scale``; each later pair's ``|t|`` makes the
 depths of the points it shares with the previous pair agree (a line fitted to their inverse
 depths, which the estimator gives in each point's own row camera); without enough shared points
@@ -36,6 +42,8 @@ import numpy as np
 
 from rsvo_ros.core.geometry import pose_at_row, pose_inverse, so3_exp, so3_log
 from rsvo_ros.core.lens import undistort_points
+from rsvo_ros.odometry.frame import FrameState
+from rsvo_ros.odometry.rotation import direction_given_rotation, fit_rotation
 from rsvo_ros.odometry.tracker import TrackedPair
 from rsvo_ros.twoview import LMOptions, RansacOptions, RelativePoseResult, estimate_relative_pose
 
@@ -47,6 +55,11 @@ MAX_SCALE_STEP = 1.25  # largest change of the baseline from one pair to the nex
 # (no translation to measure the scale from) otherwise grew it 1.25x per pair, to 1e15 m
 RESTART_BASELINE_RANGE = 4.0
 HOLD_COVARIANCE_GROWTH = 4.0  # covariance multiplier of a held (not estimated) pose
+# a pair whose tracks a turning camera explains to within this (median px at 1000 px focal,
+# each frame's rows turning at its rate; odometry/rotation.py) has too little baseline for the
+# pair estimator's rotation: the chain takes the turning camera's rotation, the direction that
+# makes each track's rays coplanar with it, and the last baseline (0: never)
+ROTATION_ONLY_PARALLAX_PX = 3.0
 DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
 
 
@@ -93,8 +106,10 @@ class PairwiseChain:
 
     def __init__(self, K: np.ndarray, D: np.ndarray | None, line_delay: float, model: str,
                  mode: str, ransac: RansacOptions, lm: LMOptions, initial_scale: float,
-                 motion_prior: bool, max_scale_change: float, seed: int):  # fmt: skip
+                 motion_prior: bool, max_scale_change: float, seed: int,
+                 rotation_only_parallax_px: float = ROTATION_ONLY_PARALLAX_PX):  # fmt: skip
         self.K, self.D, self.line_delay = K, D, line_delay
+        self.rotation_only_parallax_px = rotation_only_parallax_px
         self.model, self.mode, self.ransac, self.lm = model, mode, ransac, lm
         self.initial_scale, self.motion_prior = initial_scale, motion_prior
         self.max_scale_change, self.seed = max_scale_change, seed
@@ -149,7 +164,16 @@ class PairwiseChain:
             self.hold()
             return PairStep("held", "no translation between the middle rows", relative=rel)
         d_prev, d_curr = rel.depths_prev, rel.depths_curr  # in each point's own row camera
-        scale, scale_note = self._relative_scale(pair.ids, rel, d_prev, unit)
+        turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel)
+        if turned is not None:
+            R_m, t_m, par = turned
+            unit = 1.0
+            d_prev = d_curr = np.full(len(pair.ids), np.nan)  # no depths from no baseline
+            scale, scale_note = self._last_baseline, (
+                f"rotation of a turning camera ({par:.2f} px of translation parallax), the "
+                "last baseline")
+        else:
+            scale, scale_note = self._relative_scale(pair.ids, rel, d_prev, unit)
         T_curr_prev = np.eye(4)
         T_curr_prev[:3, :3], T_curr_prev[:3, 3] = R_m, t_m * scale
         M = pose_inverse(T_curr_prev)  # the current middle-row camera in the previous one
@@ -176,6 +200,34 @@ class PairwiseChain:
                         inlier_ratio=rel.inlier_ratio, scale=scale, relative=rel)
 
     # ------------------------------------------------------------------ internals
+
+    def _turning_camera(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
+                        row_mid: float, rel: RelativePoseResult,
+                        ) -> tuple[np.ndarray, np.ndarray, float] | None:  # fmt: skip
+        """The middle-row motion ``(R, unit t)`` of a pair with under
+        ``ROTATION_ONLY_PARALLAX_PX`` of translation parallax, from a turning camera's fit (the
+        pair estimator's rotation is its start), and that parallax; None above it."""
+        focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
+        limit = self.rotation_only_parallax_px * focal / 1000.0
+        inl = rel.inliers
+        if limit <= 0 or inl.sum() < 20:
+            return None
+        f, c = np.array([self.K[0, 0], self.K[1, 1]]), self.K[:2, 2]
+        xa, xb = (pts_prev[inl] - c) / f, (pts_curr[inl] - c) / f
+        sa = (pair.pts_prev[inl, 1] - row_mid) * self.line_delay
+        sb = (pair.pts_curr[inl, 1] - row_mid) * self.line_delay
+        R_m, _, (w_p, _, w_c, _) = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev,
+                                               rel.w_curr, rel.v_curr, row_mid,
+                                               self.line_delay)  # fmt: skip
+        first = FrameState(0, np.eye(3), np.zeros(3), w_p, np.zeros(3))
+        robust = 1.5 * focal / 1000.0
+        fit = fit_rotation(first, xa, sa, xb, sb, R_m.T, w_c, focal, robust)
+        if not fit.ok or fit.parallax_px > limit:
+            return None
+        centre = direction_given_rotation(w_p, xa, sa, fit, xb, sb, robust, focal)
+        if centre is None:
+            return None
+        return fit.R.T, -fit.R.T @ centre, fit.parallax_px
 
     def _predicted_motion(self, interval: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The last estimated middle-row motion, its rotation scaled to ``interval`` (constant

@@ -29,7 +29,7 @@ from rsvo_ros.odometry.line_delay import (
     LineDelayEstimate,
     LineDelayOptions,
 )
-from rsvo_ros.odometry.pairwise import PairwiseChain
+from rsvo_ros.odometry.pairwise import ROTATION_ONLY_PARALLAX_PX, PairwiseChain
 from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.odometry.window import (
     WindowOdometry,
@@ -61,6 +61,11 @@ class PipelineOptions:
     # pair's motion is one more start of the search (off: each pair on its own, as the paper)
     motion_prior: bool = True
     max_scale_change: float = 5.0  # pairwise: relative scale outside [1/x, x] is not trusted
+    # pairwise chain (the pairwise backend, and the window's frames while its map starts): a
+    # pair whose tracks a turning camera explains to within this many px (median, at 1000 px
+    # focal) is posed by that rotation (odometry/rotation.py): too short a baseline for the
+    # pair estimator, as between a walk's consecutive frames (0: never)
+    rotation_only_parallax_px: float = ROTATION_ONLY_PARALLAX_PX
     seed: int = 0
     # Time that jumps. Back by more than this many frame intervals (a looped bag, a restarted
     # simulator): the odometry resets and a new trajectory starts at that frame; back by less
@@ -172,7 +177,7 @@ class OdometryPipeline:
             self.window.close()  # its mapping thread (async mapping)
         self.chain = PairwiseChain(self.K, self.D, self.line_delay, o.model, o.mode, o.ransac,
                                    o.lm, o.initial_scale, o.motion_prior, o.max_scale_change,
-                                   o.seed)  # fmt: skip
+                                   o.seed, o.rotation_only_parallax_px)  # fmt: skip
         self.window = WindowOdometry(self.K, tau, o.window, o.model, o.ransac, o.lm,
                                      o.initial_scale, o.motion_prior, o.seed)  # fmt: skip
         self.window.calibrator = self.calibrator  # kept across resets: the same camera

@@ -213,6 +213,7 @@ class RsvoNode(Node):
                                motion_prior=bool(self.p["motion_prior"]))
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
+        opts.rotation_only_parallax_px = float(self.p["rotation_only_parallax_px"])
         opts.window.async_mapping = bool(self.p["async_mapping"])
         opts.window.map.prior_acc_rad_s2 = float(self.p["angular_acceleration_std"])
         opts.window.keyframe_log_max = int(self.p["path_max_length"])  # flat memory

@@ -77,6 +77,11 @@ PARAMETERS = {
         "RS: centre the velocity prior on the constant velocity of each frame pair's motion "
         "(from the image stamps) and start the search also from the previous pair's motion. "
         "False: each pair on its own, as in the paper.")),
+    "rotation_only_parallax_px": (3.0, _float(
+        "Pairwise chain (pairwise backend; window backend while its map starts): a frame pair "
+        "whose tracks a turning camera explains to within this many px (median, at 1000 px "
+        "focal) is posed by that rotation, its baseline too short for the pair estimator "
+        "(hand-held walks: ATE about halved, README). 0: never.", 0.0, 100.0)),
     "lm_max_iterations": (30, _int("Levenberg-Marquardt iterations of the refinements.", 1,
                                    500)),
     "odom_frame": ("odom", _str("frame_id of the odometry and path.")),

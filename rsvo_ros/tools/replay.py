@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rsvo_ros.odometry.pairwise import ROTATION_ONLY_PARALLAX_PX
 from rsvo_ros.odometry.pipeline import (
     BACKENDS,
     FrameResult,
@@ -347,6 +348,7 @@ def replay(cfg: ReplayConfig) -> dict:
     summary = {
         "bag": str(cfg.bag), "model": cfg.model, "backend": options.backend,
         "motion_prior": options.motion_prior,
+        "rotation_only_parallax_px": options.rotation_only_parallax_px,
         "async_mapping": options.window.async_mapping,
         "angular_acceleration_std": options.window.map.prior_acc_rad_s2,
         # numeric WindowOptions fields away from their defaults (--window-option)
@@ -594,6 +596,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="window backend, RS: std (rad/s^2) of the prior on each frame's angular "
                         "acceleration during its readout (default 0: constant velocity within "
                         "a frame; about 50 for hand-held video with strong shake)")
+    p.add_argument("--rotation-only-parallax", type=float, default=ROTATION_ONLY_PARALLAX_PX,
+                   metavar="PX",
+                   help="pairwise chain: a pair whose tracks a turning camera explains to "
+                        "within PX (median, at 1000 px focal) is posed by that rotation "
+                        f"(default {ROTATION_ONLY_PARALLAX_PX:g}; 0: never)")
     p.add_argument("--window-option", type=window_option_arg, action="append", default=[],
                    metavar="NAME=VALUE",
                    help="window backend: set a numeric WindowOptions field, e.g. "
@@ -611,6 +618,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         print("rsvo_replay: --max-frames must be at least 1", file=sys.stderr)
         return EXIT_USAGE
+    if not (np.isfinite(args.rotation_only_parallax) and args.rotation_only_parallax >= 0):
+        print("rsvo_replay: --rotation-only-parallax must be a finite number of px >= 0",
+              file=sys.stderr)
+        return EXIT_USAGE
     if not (np.isfinite(args.angular_acceleration) and args.angular_acceleration >= 0):
         print("rsvo_replay: --angular-acceleration must be a std >= 0 (rad/s^2)",
               file=sys.stderr)
@@ -624,6 +635,7 @@ def main(argv: list[str] | None = None) -> int:
                               line_delay_auto=auto)
     options.window.async_mapping = args.async_mapping
     options.window.map.prior_acc_rad_s2 = args.angular_acceleration
+    options.rotation_only_parallax_px = args.rotation_only_parallax
     set_window_options(options, args.window_option)
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
                        args.camera_info_topic, args.ground_truth_topic,

@@ -148,9 +148,10 @@ def test_angular_acceleration_within_the_readout_is_estimated_when_enabled():
     assert ate_ca < 0.8 * ate_cv, (ate_ca, ate_cv)  # 3.0 mm vs 4.2 mm
 
 
-def test_window_pipeline_on_a_rendered_walk_beats_the_pairwise_chain():
+def test_window_pipeline_on_a_rendered_walk_is_at_least_the_pairwise_chain():
     """A rendered hand-held walk with mild shake (36 ms readout): the window backend's RS
-    trajectory is closer to the truth than the pairwise chain's, and every frame is posed."""
+    trajectory is as close to the truth as the pairwise chain's or closer, within 6 cm, and
+    every frame is posed."""
     cfg = SynthConfig(frames=45, motion="walk", severity=0.5, width=640, height=360, seed=0)
     renderer = SequenceRenderer(cfg)
     frames = list(renderer)
@@ -179,9 +180,9 @@ def test_window_pipeline_on_a_rendered_walk_beats_the_pairwise_chain():
         if backend == "window":
             assert keyframes >= 2 and r.velocity is not None
             assert init_step_deg < 1.0, init_step_deg
-    # 0.71 (0.186 / 0.261 m); 0.41 before the first map waited for translation parallax,
-    # which starts this short walk's map later (and fixed 8 of 10 failing vehicle runs)
-    assert ate["window"] < 0.8 * ate["pairwise"], ate
+    # 0.042 / 0.047 m since short-baseline pairs are posed as a turning camera (the chain
+    # poses this walk's first 20 frames for both backends); 0.186 / 0.261 m before
+    assert ate["window"] <= ate["pairwise"] and ate["window"] < 0.06, ate
 
 
 def test_walk_motion_has_its_features():

@@ -1,0 +1,101 @@
+"""A turning rolling-shutter camera: rotation, turn rate and translation parallax of a frame pair
+(odometry/rotation.py), and the pairwise chain that takes them where the baseline is too short
+for the pair estimator."""
+
+from __future__ import annotations
+
+import numpy as np
+from conftest import ground_truth_pose
+
+from rsvo_ros.core.geometry import so3_exp, so3_log
+from rsvo_ros.odometry.frame import FrameState
+from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
+from rsvo_ros.odometry.rotation import direction_given_rotation, fit_rotation
+from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
+from rsvo_ros.tools.replay import accuracy
+
+FOCAL = 500.0
+TAU = 1e-4  # s per row: a 36 ms readout over 360 rows
+
+
+def _views(rng, state: FrameState, X: np.ndarray, noise_px: float = 0.0):
+    """RS observations (normalized, row times) of world points by a frame (fixed point)."""
+    s = np.zeros(len(X))
+    for _ in range(30):
+        R, p = state.row_cameras(s)
+        Xc = np.einsum("nji,nj->ni", R, X - p)
+        x = Xc[:, :2] / Xc[:, 2:]
+        s = x[:, 1] * FOCAL * TAU
+    return x + rng.normal(0, noise_px / FOCAL, x.shape), s
+
+
+def _scene(rng, n: int = 300) -> np.ndarray:
+    return np.column_stack([rng.uniform(-3, 3, n), rng.uniform(-2, 2, n), rng.uniform(2, 8, n)])
+
+
+def test_a_turning_rs_camera_is_fitted_and_a_moving_one_leaves_parallax(rng):
+    """A camera turning at 2.6 rad/s (a walker looking around: 5 deg a frame, 5 deg across
+    the readout) whose turn rate a shake changes by 1.2 rad/s from one frame to the next: the
+    fit gives the rotation and turn rate and leaves only the noise; a global-shutter rotation
+    leaves a pixel and more of wobble. The same turn while the camera moves 6 cm leaves the
+    translation parallax the chain keeps the pair estimator for."""
+    X = _scene(rng)
+    w, w2 = np.array([0.3, 2.6, 0.2]), np.array([1.1, 1.8, -0.4])
+    first = FrameState(0, np.eye(3), np.zeros(3), w, np.zeros(3))
+    R_true = so3_exp((w + w2) / 60.0)
+    xa, sa = _views(rng, first, X, 0.3)
+    for move, expect_parallax in ((0.0, False), (0.06, True)):
+        second = FrameState(1, R_true, np.array([0.0, 0.0, move]), w2, np.zeros(3))
+        xb, sb = _views(rng, second, X, 0.3)
+        fit = fit_rotation(first, xa, sa, xb, sb, np.eye(3), np.zeros(3), FOCAL)
+        assert fit.ok
+        if expect_parallax:
+            assert fit.parallax_px > 1.5, fit.parallax_px
+            continue
+        assert fit.parallax_px < 0.5, fit.parallax_px  # noise 0.3 px per axis
+        assert np.degrees(np.linalg.norm(so3_log(R_true.T @ fit.R))) < 0.03
+        assert np.linalg.norm(fit.w - w2) < 0.1 * np.linalg.norm(w2)
+        gs = fit_rotation(first, xa, sa * 0, xb, sb * 0, np.eye(3), np.zeros(3), FOCAL)
+        assert gs.parallax_px > 2 * fit.parallax_px, (gs.parallax_px, fit.parallax_px)
+
+
+def test_the_baseline_direction_follows_from_a_known_rotation(rng):
+    """Given the fitted rotation, the rays of each track and the baseline are coplanar: a
+    walker's 3 cm step (forward, or forward with some sway and bob) comes out within 20 deg
+    (the pair estimator on such walk pairs: 70-95 deg off). A step straight sideways is mostly
+    taken up by the rotation fit (0.3 deg of it here) and its direction is not recovered."""
+    X = _scene(rng)
+    w = np.array([0.5, -1.0, 0.1])
+    first = FrameState(0, np.eye(3), np.zeros(3), w, np.zeros(3))
+    xa, sa = _views(rng, first, X, 0.3)
+    for step in ([0.0, 0.0, 0.03], [0.01, 0.005, 0.03], [-0.008, 0.004, 0.025]):
+        c = np.array(step)
+        second = FrameState(1, so3_exp(w / 30.0), c, w, np.zeros(3))
+        xb, sb = _views(rng, second, X, 0.3)
+        fit = fit_rotation(first, xa, sa, xb, sb, np.eye(3), w, FOCAL)
+        got = direction_given_rotation(w, xa, sa, fit, xb, sb, 1.5, FOCAL)
+        angle = np.degrees(np.arccos(np.clip(got @ c / np.linalg.norm(c), -1, 1)))
+        assert angle < 20.0, (step, angle)
+
+
+def test_the_pairwise_chain_takes_the_turning_camera_on_a_walk():
+    """A rendered walk (3 cm a frame, strong shake): most pairs are posed as a turning camera,
+    saying so, and the chain's per-frame rotation error is far below the pair estimator's
+    (1.6 deg RMS before on this walk's first 26 frames)."""
+    cfg = SynthConfig(frames=30, motion="walk", severity=1.0, width=640, height=360, seed=0)
+    renderer = SequenceRenderer(cfg)
+    pipe = OdometryPipeline(renderer.K, None, cfg.tau, PipelineOptions(backend="pairwise"))
+    est, gt, turned = {}, {}, 0
+    for f in renderer:
+        s = round(f.stamp * 1e9)
+        r = pipe.process(s, f.image)
+        assert np.isfinite(r.T_world_cam).all()
+        turned += "turning camera" in r.reason
+        est[s], gt[s] = r.T_world_cam, ground_truth_pose(f)
+    assert turned >= 20
+    stamps = sorted(est)
+    err = [np.degrees(np.linalg.norm(so3_log(
+        (gt[a][:3, :3].T @ gt[b][:3, :3]).T @ (est[a][:3, :3].T @ est[b][:3, :3]))))
+        for a, b in zip(stamps, stamps[1:], strict=False)]  # fmt: skip
+    assert np.sqrt(np.mean(np.square(err))) < 0.8, err
+    assert accuracy(gt, est)["ate_m"]["rmse"] < 0.1
