@@ -73,3 +73,17 @@ def ros_test_env(domain_id: int) -> dict[str, str]:
 def ground_truth_pose(frame) -> np.ndarray:
     """(4, 4) ``T_world_camera`` of a rendered :class:`rsvo_ros.sim.synth.Frame` (row 0)."""
     return frame.pose()
+
+
+def rs_views(state, X: np.ndarray, focal: float, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact rolling-shutter views of world points ``X`` (n, 3) by a frame (a
+    :class:`rsvo_ros.odometry.frame.FrameState`, principal point at the reference row):
+    normalized coordinates (n, 2) and row times from the reference row (n,), each point seen
+    at the row whose camera sees it there (fixed point)."""
+    s = np.zeros(len(X))
+    for _ in range(30):
+        R, p = state.row_cameras(s)
+        Xc = np.einsum("nji,nj->ni", R, X - p)
+        x = Xc[:, :2] / Xc[:, 2:]
+        s = x[:, 1] * focal * tau
+    return x, s

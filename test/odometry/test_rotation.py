@@ -5,7 +5,7 @@ for the pair estimator."""
 from __future__ import annotations
 
 import numpy as np
-from conftest import ground_truth_pose
+from conftest import ground_truth_pose, rs_views
 
 from rsvo_ros.core.geometry import so3_exp, so3_log
 from rsvo_ros.odometry.frame import FrameState
@@ -19,13 +19,8 @@ TAU = 1e-4  # s per row: a 36 ms readout over 360 rows
 
 
 def _views(rng, state: FrameState, X: np.ndarray, noise_px: float = 0.0):
-    """RS observations (normalized, row times) of world points by a frame (fixed point)."""
-    s = np.zeros(len(X))
-    for _ in range(30):
-        R, p = state.row_cameras(s)
-        Xc = np.einsum("nji,nj->ni", R, X - p)
-        x = Xc[:, :2] / Xc[:, 2:]
-        s = x[:, 1] * FOCAL * TAU
+    """RS observations (normalized, row times) of world points by a frame, with noise."""
+    x, s = rs_views(state, X, FOCAL, TAU)
     return x + rng.normal(0, noise_px / FOCAL, x.shape), s
 
 

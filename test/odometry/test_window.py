@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import ground_truth_pose
+from conftest import ground_truth_pose, rs_views
 
 from rsvo_ros.core.geometry import so3_exp, so3_log
 from rsvo_ros.odometry.frame import FrameState, KeyFrame, Observations
@@ -23,12 +23,7 @@ FOCAL = 500.0
 def _obs_of(state: FrameState, X: np.ndarray, ids: np.ndarray, tau: float,
             rng=None, noise=0.0) -> Observations:  # fmt: skip
     """Exact RS observations (fixed point on the row) of world points X by a frame."""
-    s = np.zeros(len(X))
-    for _ in range(30):
-        R, p = state.row_cameras(s)
-        Xc = np.einsum("nji,nj->ni", R, X - p)
-        x = Xc[:, :2] / Xc[:, 2:]
-        s = x[:, 1] * FOCAL * tau
+    x, _ = rs_views(state, X, FOCAL, tau)
     if noise:
         x = x + rng.normal(0, noise / FOCAL, x.shape)
     px = x * FOCAL + [320.0, 180.0]
