@@ -205,17 +205,19 @@ class PairwiseChain:
                         row_mid: float, rel: RelativePoseResult,
                         ) -> tuple[np.ndarray, np.ndarray, float] | None:  # fmt: skip
         """The middle-row motion ``(R, unit t)`` of a pair with under
-        ``ROTATION_ONLY_PARALLAX_PX`` of translation parallax, from a turning camera's fit (the
-        pair estimator's rotation is its start), and that parallax; None above it."""
+        ``rotation_only_parallax_px`` of translation parallax, from a turning camera's fit (the
+        pair estimator's rotation is its start), and that parallax; None above it. The GS
+        models' fit is a global shutter's (every row at the frame's time)."""
         focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
+        tau = self.line_delay if self.model == "rs" else 0.0
         limit = self.rotation_only_parallax_px * focal / 1000.0
         inl = rel.inliers
         if limit <= 0 or inl.sum() < 20:
             return None
         f, c = np.array([self.K[0, 0], self.K[1, 1]]), self.K[:2, 2]
         xa, xb = (pts_prev[inl] - c) / f, (pts_curr[inl] - c) / f
-        sa = (pair.pts_prev[inl, 1] - row_mid) * self.line_delay
-        sb = (pair.pts_curr[inl, 1] - row_mid) * self.line_delay
+        sa = (pair.pts_prev[inl, 1] - row_mid) * tau
+        sb = (pair.pts_curr[inl, 1] - row_mid) * tau
         R_m, _, (w_p, _, w_c, _) = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev,
                                                rel.w_curr, rel.v_curr, row_mid,
                                                self.line_delay)  # fmt: skip
