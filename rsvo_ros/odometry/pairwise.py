@@ -36,6 +36,7 @@ it keeps the previous baseline.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -164,7 +165,7 @@ class PairwiseChain:
             self.hold()
             return PairStep("held", "no translation between the middle rows", relative=rel)
         d_prev, d_curr = rel.depths_prev, rel.depths_curr  # in each point's own row camera
-        turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel)
+        turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel, interval)
         if turned is not None:
             R_m, t_m, par = turned
             unit = 1.0
@@ -202,7 +203,7 @@ class PairwiseChain:
     # ------------------------------------------------------------------ internals
 
     def _turning_camera(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
-                        row_mid: float, rel: RelativePoseResult,
+                        row_mid: float, rel: RelativePoseResult, interval: float,
                         ) -> tuple[np.ndarray, np.ndarray, float] | None:  # fmt: skip
         """The middle-row motion ``(R, unit t)`` of a pair with under
         ``rotation_only_parallax_px`` of translation parallax, from a turning camera's fit (the
@@ -226,9 +227,19 @@ class PairwiseChain:
         fit = fit_rotation(first, xa, sa, xb, sb, R_m.T, w_c, focal, robust)
         if not fit.ok or fit.parallax_px > limit:
             return None
-        centre = direction_given_rotation(w_p, xa, sa, fit, xb, sb, robust, focal)
-        if centre is None:
+        # the direction with the rows turning at the fitted rates, and at the rotation's own
+        # rate over the interval: the fitted rates can take up part of a forward step's
+        # expansion (a pitch rate over the rows moves points up and down as the step does;
+        # with a 7 ms readout the directions were 100-130 deg off), the constant rate leaves
+        # the shake's wobble. The one that puts more tracks in front of both cameras is taken
+        w_cv = so3_log(fit.R) / max(interval, 1e-9)
+        candidates = [c for c in (
+            direction_given_rotation(w_p, xa, sa, fit, xb, sb, robust, focal),
+            direction_given_rotation(w_cv, xa, sa, dataclasses.replace(fit, w=w_cv), xb, sb,
+                                     robust, focal)) if c is not None]  # fmt: skip
+        if not candidates:
             return None
+        centre = max(candidates, key=lambda c: c[1])[0]
         return fit.R.T, -fit.R.T @ centre, fit.parallax_px
 
     def _predicted_motion(self, interval: float) -> tuple[np.ndarray, np.ndarray] | None:

@@ -95,11 +95,13 @@ def fit_rotation(posed: FrameState, x_posed: np.ndarray, s_posed: np.ndarray,
 
 def direction_given_rotation(w_prev: np.ndarray, x_prev: np.ndarray, s_prev: np.ndarray,
                              fit: RotationFit, x: np.ndarray, s: np.ndarray,
-                             robust_px: float, focal: float) -> np.ndarray | None:  # fmt: skip
+                             robust_px: float, focal: float,
+                             ) -> tuple[np.ndarray, float] | None:  # fmt: skip
     """The unit position of the second camera in the first one's frame (reference rows), its
     rotation known (``fit``, the first camera at the identity turning at ``w_prev``): each
     track's two rays and the baseline are coplanar, ``c . (a x b) = 0`` (least squares with a
-    Cauchy loss), and the points lie in front of both cameras. None when degenerate. Good
+    Cauchy loss), and the points lie in front of both cameras; with the share of tracks that
+    do (the wrong direction of an ill-posed pair leaves many behind). None when degenerate. Good
     for a step along the view (a walker's); a step across it is mostly taken up by the fitted
     rotation (the small-baseline ambiguity) and its direction is not recovered."""
     ones = np.ones((len(x), 1))
@@ -122,6 +124,7 @@ def direction_given_rotation(w_prev: np.ndarray, x_prev: np.ndarray, s_prev: np.
     ab = np.cross(a, b)
     depth_a = np.einsum("ni,ni->n", np.cross(c, b), ab) / np.maximum(
         np.einsum("ni,ni->n", ab, ab), 1e-300)  # fmt: skip
-    if np.sum(depth_a[keep] > 0) < np.sum(depth_a[keep] < 0):
-        c = -c
-    return c if np.isfinite(c).all() else None
+    front = float(np.mean(depth_a[keep] > 0))
+    if front < 0.5:
+        c, front = -c, 1.0 - front
+    return (c, front) if np.isfinite(c).all() else None
