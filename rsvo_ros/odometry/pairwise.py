@@ -231,7 +231,7 @@ class PairwiseChain:
         # rate over the interval: the fitted rates can take up part of a forward step's
         # expansion (a pitch rate over the rows moves points up and down as the step does;
         # with a 7 ms readout the directions were 100-130 deg off), the constant rate leaves
-        # the shake's wobble. The one that puts more tracks in front of both cameras is taken
+        # the shake's wobble. The one that puts more tracks in front of the camera is taken
         w_cv = so3_log(fit.R) / max(interval, 1e-9)
         candidates = [c for c in (
             direction_given_rotation(w_p, xa, sa, fit, xb, sb, robust, focal),

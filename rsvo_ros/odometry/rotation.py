@@ -100,8 +100,9 @@ def direction_given_rotation(w_prev: np.ndarray, x_prev: np.ndarray, s_prev: np.
     """The unit position of the second camera in the first one's frame (reference rows), its
     rotation known (``fit``, the first camera at the identity turning at ``w_prev``): each
     track's two rays and the baseline are coplanar, ``c . (a x b) = 0`` (least squares with a
-    Cauchy loss), and the points lie in front of both cameras; with the share of tracks that
-    do (the wrong direction of an ill-posed pair leaves many behind). None when degenerate. Good
+    Cauchy loss), and most points lie in front of the first camera; with the share of tracks
+    that do (the wrong direction of an ill-posed pair leaves many behind). None when
+    degenerate. Good
     for a step along the view (a walker's); a step across it is mostly taken up by the fitted
     rotation (the small-baseline ambiguity) and its direction is not recovered."""
     ones = np.ones((len(x), 1))
