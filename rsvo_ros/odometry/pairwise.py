@@ -157,15 +157,18 @@ class PairwiseChain:
             return PairStep("held", f"no pose for this pair: {rel.reason}",
                             num_inliers=rel.num_inliers, inlier_ratio=rel.inlier_ratio,
                             relative=rel)
-        row_mid, tau = float(rel.row_ref), self.line_delay  # 0 for the GS models
-        R_m, t_m, _ = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev, rel.w_curr,
-                                  rel.v_curr, row_mid, tau)  # in units of |t| (row 0)
+        # the middle-row motion in units of |t| (the GS models' reference row is 0: nothing to
+        # re-express, whatever the line delay)
+        row_mid, tau = float(rel.row_ref), self.line_delay
+        R_m, t_m, (w_p, _, w_c, _) = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev,
+                                                 rel.w_curr, rel.v_curr, row_mid, tau)
         unit = float(np.linalg.norm(t_m))
         if not np.isfinite(unit) or unit < 1e-9:
             self.hold()
             return PairStep("held", "no translation between the middle rows", relative=rel)
         d_prev, d_curr = rel.depths_prev, rel.depths_curr  # in each point's own row camera
-        turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel, interval)
+        turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel, R_m, w_p, w_c,
+                                      interval)
         if turned is not None:
             R_m, t_m, par = turned
             unit = 1.0
@@ -203,12 +206,14 @@ class PairwiseChain:
     # ------------------------------------------------------------------ internals
 
     def _turning_camera(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
-                        row_mid: float, rel: RelativePoseResult, interval: float,
+                        row_mid: float, rel: RelativePoseResult, R_m: np.ndarray,
+                        w_p: np.ndarray, w_c: np.ndarray, interval: float,
                         ) -> tuple[np.ndarray, np.ndarray, float] | None:  # fmt: skip
         """The middle-row motion ``(R, unit t)`` of a pair with under
-        ``rotation_only_parallax_px`` of translation parallax, from a turning camera's fit (the
-        pair estimator's rotation is its start), and that parallax; None above it. The GS
-        models' fit is a global shutter's (every row at the frame's time)."""
+        ``rotation_only_parallax_px`` of translation parallax, from a turning camera's fit
+        started from the pair estimator's middle-row rotation ``R_m`` and turn rates ``w_p``,
+        ``w_c``, and that parallax; None above it. The GS models' fit is a global shutter's
+        (every row at the frame's time)."""
         focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
         tau = self.line_delay if self.model == "rs" else 0.0
         limit = self.rotation_only_parallax_px * focal / 1000.0
@@ -219,9 +224,6 @@ class PairwiseChain:
         xa, xb = (pts_prev[inl] - c) / f, (pts_curr[inl] - c) / f
         sa = (pair.pts_prev[inl, 1] - row_mid) * tau
         sb = (pair.pts_curr[inl, 1] - row_mid) * tau
-        R_m, _, (w_p, _, w_c, _) = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev,
-                                               rel.w_curr, rel.v_curr, row_mid,
-                                               self.line_delay)  # fmt: skip
         first = FrameState(0, np.eye(3), np.zeros(3), w_p, np.zeros(3))
         robust = 1.5 * focal / 1000.0
         fit = fit_rotation(first, xa, sa, xb, sb, R_m.T, w_c, focal, robust)

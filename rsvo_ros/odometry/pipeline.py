@@ -375,8 +375,7 @@ class OdometryPipeline:
             # the new map starts where the chain has this frame: the published odometry goes on
             # without a jump (the map's pose of it differs by the chain's drift since the map's
             # first keyframe: 4-14 deg on walks, one frame's jump)
-            T_map = self.window.row0_pose(state)
-            T_odom_world = self.chain.T_world_cam @ np.linalg.inv(T_map)
+            T_odom_world = rigid_correction(self.window.row0_pose(state), self.chain.T_world_cam)
             self.T_odom_world = T_odom_world if np.isfinite(T_odom_world).all() else np.eye(4)
         if state is not None and out.status == "posed":
             for before, after in [] if started else out.ba_moved:

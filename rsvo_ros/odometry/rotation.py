@@ -102,27 +102,25 @@ def direction_given_rotation(w_prev: np.ndarray, x_prev: np.ndarray, s_prev: np.
     track's two rays and the baseline are coplanar, ``c . (a x b) = 0`` (least squares with a
     Cauchy loss), and most points lie in front of the first camera; with the share of tracks
     that do (the wrong direction of an ill-posed pair leaves many behind). None when
-    degenerate. Good
-    for a step along the view (a walker's); a step across it is mostly taken up by the fitted
-    rotation (the small-baseline ambiguity) and its direction is not recovered."""
+    degenerate. Good for a step along the view (a walker's); a step across it is mostly taken
+    up by the fitted rotation (the small-baseline ambiguity) and its direction is not
+    recovered."""
     ones = np.ones((len(x), 1))
     a = np.einsum("nij,nj->ni", so3_exp(np.asarray(s_prev, float)[:, None] * w_prev),
                   np.hstack([x_prev, ones]))  # fmt: skip
     b = np.einsum("nij,nj->ni", fit.R @ so3_exp(np.asarray(s, float)[:, None] * fit.w),
                   np.hstack([x, ones]))  # fmt: skip
-    n = np.cross(a, b)
-    n /= np.linalg.norm(a, axis=1)[:, None] * np.linalg.norm(b, axis=1)[:, None]
+    ab = np.cross(a, b)
+    n = ab / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))[:, None]
     keep = fit.residual_px < 3.0 * robust_px
     if keep.sum() < 8:
         return None
     wt = np.ones(len(x))
-    c = None
     for _ in range(4):
         A = n[keep] * wt[keep, None]
         c = np.linalg.svd(A, full_matrices=False)[2][-1]
         r = (n @ c) * focal  # about the image distance off the epipolar plane (px)
         wt = 1.0 / np.sqrt(1.0 + (r / robust_px) ** 2)
-    ab = np.cross(a, b)
     depth_a = np.einsum("ni,ni->n", np.cross(c, b), ab) / np.maximum(
         np.einsum("ni,ni->n", ab, ab), 1e-300)  # fmt: skip
     front = float(np.mean(depth_a[keep] > 0))
