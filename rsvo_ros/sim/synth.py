@@ -499,6 +499,19 @@ class SequenceRenderer:
 
         return stamp, R0[0], p0[0], w, v, row_pose
 
+    def readout_turn_rate(self, k: int) -> np.ndarray:
+        """The constant turn rate (rad/s, row-0 camera frame) that takes frame ``k``'s row-0
+        camera to its last row's: the mean over the readout, what a frame's single ``w``
+        (the paper's constant velocity within a frame) can represent. Under shake faster than
+        the readout it differs from the instantaneous row-0 ``w`` of the ground truth."""
+        cfg = self.config
+        _, R0, _, w, _, row_pose = self.frame_pose(k)
+        readout = (cfg.height - 1) * cfg.tau
+        if readout <= 0:
+            return w
+        R_last = row_pose(np.array([cfg.height - 1.0]))[0]
+        return so3_log(R0.T @ np.asarray(R_last).reshape(3, 3)) / readout
+
     def render(self, k: int) -> Frame:
         cfg = self.config
         stamp, R0, p0, w, v, row_pose = self.frame_pose(k)

@@ -413,10 +413,19 @@ def replay(cfg: ReplayConfig) -> dict:
 
 
 def keyframe_summary(log: dict, gt_w: dict[int, np.ndarray], row0_time: float = 0.0) -> dict:
-    """The window backend's keyframes (their final, window-refined states): how many, and
-    where the bag's ground truth has angular velocities, the median error of theirs relative
-    to the true ``|w|`` (both at the row-0 time, ``row0_time`` s from the reference row)."""
+    """The window backend's keyframes (their final, window-refined states): how many, their
+    row-0 velocities (``velocities``: stamp, ``w`` rad/s and ``v`` map units/s in the row-0
+    camera frame, as CONTRACTS.md reports a frame's), and where the bag's ground truth has
+    angular velocities, the median error of theirs relative to the true ``|w|`` (both at the
+    row-0 time, ``row0_time`` s from the reference row)."""
     out = {"count": len(log)}
+    rows = []
+    for s, st in sorted(log.items()):
+        w, v = st.row0_velocities(row0_time)
+        if np.isfinite(w).all() and np.isfinite(v).all():
+            rows.append({"stamp_ns": int(s), "w": [float(x) for x in w],
+                         "v": [float(x) for x in v]})
+    out["velocities"] = rows
     rel = [float(np.linalg.norm(st.row0_velocities(row0_time)[0] - gt_w[s])
                  / np.linalg.norm(gt_w[s]))
            for s, st in log.items() if s in gt_w and np.linalg.norm(gt_w[s]) > 1e-6]

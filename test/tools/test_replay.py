@@ -44,6 +44,10 @@ def test_replay_writes_every_output(vehicle_bag, tmp_path, model, extra, capsys)
         kf = summary["keyframes"]
         assert kf["count"] >= 2 and kf["w_compared"] >= 2
         assert 0 <= kf["w_rel_error_median"] < 5
+        vel = kf["velocities"]  # every keyframe's row-0 velocities, in stamp order
+        assert len(vel) == kf["count"]
+        assert [r["stamp_ns"] for r in vel] == sorted(r["stamp_ns"] for r in vel)
+        assert np.isfinite([r["w"] + r["v"] for r in vel]).all()
         assert any(f["keyframe"] for f in summary["frames"])
     assert summary["frames_in"] == 8 == summary["frames_in_bag"]
     assert summary["frames_posed"] + summary["frames_skipped"] == summary["frames_in"]
