@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rsvo_ros.odometry.local_map import ACCELERATION_STD_RAD_S2
 from rsvo_ros.odometry.pairwise import ROTATION_ONLY_PARALLAX_PX
 from rsvo_ros.odometry.pipeline import (
     BACKENDS,
@@ -601,10 +602,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--async-mapping", action="store_true",
                    help="window backend: map keyframes on a background thread as the live node "
                         "does (default: inline, deterministic)")
-    p.add_argument("--angular-acceleration", type=float, default=0.0, metavar="STD",
+    p.add_argument("--angular-acceleration", type=float, default=ACCELERATION_STD_RAD_S2,
+                   metavar="STD",
                    help="window backend, RS: std (rad/s^2) of the prior on each frame's angular "
-                        "acceleration during its readout (default 0: constant velocity within "
-                        "a frame; about 50 for hand-held video with strong shake)")
+                        f"acceleration during its readout (default {ACCELERATION_STD_RAD_S2:g}; "
+                        "0: the paper's constant velocity within a frame)")
     p.add_argument("--rotation-only-parallax", type=float, default=ROTATION_ONLY_PARALLAX_PX,
                    metavar="PX",
                    help="pairwise chain: a pair whose tracks a turning camera explains to "

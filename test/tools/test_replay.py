@@ -292,11 +292,15 @@ def test_max_frames_stops_early_and_is_checked(vehicle_bag, tmp_path, capsys):
 def test_angular_acceleration_flag_reaches_the_window_and_is_checked(vehicle_bag, tmp_path,
                                                                       capsys):
     out = tmp_path / "acc"
-    assert replay_main([str(vehicle_bag), "--output", str(out), "--angular-acceleration", "50",
-                        "--no-progress"]) == 0
+    assert replay_main([str(vehicle_bag), "--output", str(out), "--angular-acceleration", "0",
+                        "--no-progress"]) == 0  # the paper's constant velocity within a frame
     s = json.loads((out / "summary.json").read_text())
-    assert s["angular_acceleration_std"] == 50.0
+    assert s["angular_acceleration_std"] == 0.0
     assert s["frames_posed"] == s["frames_in"] == 8  # the whole (8-frame) bag
+    assert replay_main([str(vehicle_bag), "--output", str(tmp_path / "default"),
+                        "--max-frames", "3", "--no-progress"]) == 0
+    default = json.loads((tmp_path / "default" / "summary.json").read_text())
+    assert default["angular_acceleration_std"] == 50.0
     assert replay_main([str(vehicle_bag), "--output", str(tmp_path / "bad"),
                         "--angular-acceleration", "-1", "--no-progress"]) == 2
     assert "--angular-acceleration" in capsys.readouterr().err
