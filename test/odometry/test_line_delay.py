@@ -162,3 +162,22 @@ def test_keyframe_velocities_come_from_a_spline_through_the_tracked_frames():
     for k in range(5000):  # memory stays bounded, windows or not
         cal.add_pose(FrameState(round(1e9 + k * dt * 1e9), np.eye(3), np.zeros(3)))
     assert 2048 <= len(cal._poses) <= 4096
+
+
+def test_the_re_solves_hold_the_accelerations(auto_50):
+    """The odometry estimates each frame's angular acceleration (the default), the calibration
+    does not: a free acceleration would take up part of what the readout's length explains.
+    The windows' costs are the same whether their problems had the accelerations free or held."""
+    pipe, _ = auto_50
+    cal = pipe.calibrator
+    win = cal.windows[len(cal.windows) // 2]
+    assert (win.problem.col[:, 12:] >= 0).any() and win.problem.acc_p2 > 0  # the odometry's
+    held = win.problem.col.copy()
+    held[:, 12:] = -1
+    free = held >= 0
+    held[free] = np.arange(int(free.sum()))
+    as_held = dataclasses.replace(win, problem=dataclasses.replace(
+        win.problem, col=held, n_cols=int(free.sum()), acc_p2=0.0))
+    taus = np.array([0.0, 2e-5, 5e-5, 8e-5])
+    trajectory = cal._trajectory()
+    assert np.allclose(cal._costs(win, taus, trajectory), cal._costs(as_held, taus, trajectory))
