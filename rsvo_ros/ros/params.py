@@ -71,7 +71,7 @@ PARAMETERS = {
         "Window backend, RS: std (rad/s^2) of the zero-mean prior on each frame's angular "
         "acceleration during its readout (a 10 Hz shake of 1 rad/s); 0 keeps the paper's "
         "constant velocity within a frame (smooth vehicle motion: ATE up to 6 % lower, "
-        "per-frame rotation error 12-21 % higher; README).", 0.0, 10000.0)),
+        "per-frame rotation error 14-27 % higher; README).", 0.0, 10000.0)),
     "max_features": (500, _int("Tracked corners (paper: 500).", 20, 5000)),
     "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
     "motion_prior": (True, _bool(

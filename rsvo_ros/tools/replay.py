@@ -420,16 +420,16 @@ def keyframe_summary(log: dict, gt_w: dict[int, np.ndarray], row0_time: float = 
     angular velocities, the median error of theirs relative to the true ``|w|`` (both at the
     row-0 time, ``row0_time`` s from the reference row)."""
     out = {"count": len(log)}
-    rows = []
+    rows, rel = [], []
     for s, st in sorted(log.items()):
         w, v = st.row0_velocities(row0_time)
-        if np.isfinite(w).all() and np.isfinite(v).all():
-            rows.append({"stamp_ns": int(s), "w": [float(x) for x in w],
-                         "v": [float(x) for x in v]})
+        if not (np.isfinite(w).all() and np.isfinite(v).all()):
+            continue
+        rows.append({"stamp_ns": int(s), "w": [float(x) for x in w],
+                     "v": [float(x) for x in v]})
+        if s in gt_w and np.linalg.norm(gt_w[s]) > 1e-6:
+            rel.append(float(np.linalg.norm(w - gt_w[s]) / np.linalg.norm(gt_w[s])))
     out["velocities"] = rows
-    rel = [float(np.linalg.norm(st.row0_velocities(row0_time)[0] - gt_w[s])
-                 / np.linalg.norm(gt_w[s]))
-           for s, st in log.items() if s in gt_w and np.linalg.norm(gt_w[s]) > 1e-6]
     if rel:
         out["w_rel_error_median"] = float(np.median(rel))
         out["w_compared"] = len(rel)
