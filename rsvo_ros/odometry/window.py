@@ -163,7 +163,7 @@ class WindowOdometry:
         self.reset()
 
     def reset(self) -> None:
-        self.map = LocalMap(self.focal, self.options.map)
+        self.map = self._new_map()
         self._points = (np.zeros(0, np.int64), np.zeros((0, 3)))  # what tracking matches
         self._next_kf = 0
         self._last: FrameState | None = None
@@ -403,7 +403,7 @@ class WindowOdometry:
             self.map.add_keyframe(kf)
         report = self.map_keyframe(None, optimize_only=True)
         if len(self.map.landmarks) < self.options.min_inliers:
-            self.map = LocalMap(self.focal, self.options.map)
+            self.map = self._new_map()
             self._ref = self._new_keyframe(state, obs, None)
             return WindowResult("held", "initialising: too few landmarks", state)
         if self._origin is None and not hinted:
@@ -444,7 +444,7 @@ class WindowOdometry:
         R, p, w, v, a, res, cost, H = rs_projection.track_frame(
             pred.R, pred.p, self._last.w, self._last.v, np.zeros(3), X[ia], obs.x[ib],
             obs.s[ib], self.focal, o.track_robust_px * self._px, np.concatenate([w_cv, v_cv]),
-            p2, acc_prior_p2(o.map.prior_acc_rad_s2), o.track_iterations)  # fmt: skip
+            p2, acc_prior_p2(self.map.options.prior_acc_rad_s2), o.track_iterations)  # fmt: skip
         err = np.linalg.norm(res, axis=1)
         inl = err < o.track_inlier_px * self._px
         if inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)) \
@@ -531,7 +531,7 @@ class WindowOdometry:
             if usual is not None and speed > 2.0 * usual:
                 held.v = held.v * (usual / speed)  # a diverging last pose must not set it
             self._origin = held
-            self.map = LocalMap(self.focal, self.options.map)
+            self.map = self._new_map()
             self._points = (np.zeros(0, np.int64), np.zeros((0, 3)))
             self._last = self._before = None
             self._lost = 0
@@ -591,6 +591,16 @@ class WindowOdometry:
             self.keyframe_log = log
         return report, points
 
+    def _map_options(self) -> MapOptions:
+        """The map's options: the given ones; without a readout (a global shutter, or the GS
+        models) the angular accelerations are held, as nothing in the images shows them."""
+        if self.line_delay > 0 or self.options.map.prior_acc_rad_s2 <= 0:
+            return self.options.map
+        return dataclasses.replace(self.options.map, prior_acc_rad_s2=0.0)
+
+    def _new_map(self) -> LocalMap:
+        return LocalMap(self.focal, self._map_options())
+
     def set_line_delay(self, line_delay: float) -> None:
         """Go on with another line delay (line_delay auto): every kept observation's row time
         is recomputed from its row (the landmarks' anchors with them), the map points renewed."""
@@ -598,6 +608,7 @@ class WindowOdometry:
             self._mapper.wait_idle()
         with self._lock:
             self.line_delay = float(line_delay)
+            self.map.options = self._map_options()
             self.map.set_row_times(self.row_time)
             if self._ref is not None:
                 self._ref.obs.s = self.row_time(self._ref.obs.rows)

@@ -143,6 +143,25 @@ def test_angular_acceleration_within_the_readout_is_estimated_when_enabled():
     assert ate_ca < 0.8 * ate_cv, (ate_ca, ate_cv)  # 3.0 mm vs 4.2 mm
 
 
+def test_without_a_readout_the_accelerations_are_held():
+    """The acceleration is on by default, but a global shutter (line delay 0, or a GS model)
+    shows nothing of it: the map and tracking hold it (no unobservable parameters in the BA);
+    a line delay found later (line_delay auto) frees it."""
+    K = np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]])
+    assert MapOptions().prior_acc_rad_s2 == 50.0
+    rs = WindowOdometry(K, 1e-4)
+    gs = WindowOdometry(K, 0.0)
+    assert rs.map.options.prior_acc_rad_s2 == 50.0
+    assert gs.map.options.prior_acc_rad_s2 == 0.0
+    assert gs.options.map.prior_acc_rad_s2 == 50.0  # the given options are left as they are
+    gs.set_line_delay(5e-5)
+    assert gs.map.options.prior_acc_rad_s2 == 50.0
+    gs.set_line_delay(0.0)
+    assert gs.map.options.prior_acc_rad_s2 == 0.0
+    for wo in (rs, gs):
+        wo.close()
+
+
 def test_window_pipeline_on_a_rendered_walk_is_at_least_the_pairwise_chain():
     """A rendered hand-held walk with mild shake (36 ms readout): the window backend's RS
     trajectory is as close to the truth as the pairwise chain's or closer, within 6 cm, and
