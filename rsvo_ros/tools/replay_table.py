@@ -78,6 +78,8 @@ def run_case(out: Path, name: str, config: dict, columns: list[str]) -> dict:
     if not (bag / "metadata.yaml").exists():
         write_bag(bag, SynthConfig(**config), overwrite=True, progress=False)
     row = {}
+    path = _path_length(bag)
+    renderer = SequenceRenderer(SynthConfig(**config))  # the truth over each readout
     for col in columns:
         model, backend, prior, acc_std = VARIANTS[col]
         dest = out / f"{name}__{col.replace(' ', '_').replace(',', '')}"
@@ -86,23 +88,22 @@ def run_case(out: Path, name: str, config: dict, columns: list[str]) -> dict:
         s = replay(ReplayConfig(bag, dest, model, overwrite=True, progress=False,
                                 options=options))  # fmt: skip
         acc = s["accuracy"]
-        path = _path_length(bag)
         row[col] = {"ate_m": acc["ate_m"]["rmse"], "path_m": path,
                     "sim3_scale": acc["sim3_scale"], "rpe_rot_deg": acc["rpe_rot_deg"]["rmse"],
                     "with_pose": s["frames_posed"] / s["frames_in"],
                     "held": s["frames_held"], "fps": s["frames_per_second"],
                     "keyframe_w_rel_error": s.get("keyframes", {}).get("w_rel_error_median")}
         if backend == "window":
-            row[col].update(readout_w_errors(config, s.get("keyframes", {})))
+            row[col].update(readout_w_errors(renderer, s.get("keyframes", {})))
     return row
 
 
-def readout_w_errors(config: dict, keyframes: dict) -> dict:
+def readout_w_errors(renderer: SequenceRenderer, keyframes: dict) -> dict:
     """The keyframes' turn rates against the mean turn rate over each frame's readout (what a
-    constant velocity within a frame can represent), and how far that mean itself is from the
-    instantaneous row-0 rate the bag's ground truth carries (the floor of the error the
-    summary reports): medians relative to the reference's ``|w|``."""
-    renderer = SequenceRenderer(SynthConfig(**config))
+    constant velocity within a frame can represent; ``renderer`` of the bag's sequence), and
+    how far that mean itself is from the instantaneous row-0 rate the bag's ground truth
+    carries (the floor of the error the summary reports): medians relative to the
+    reference's ``|w|``."""
     est, floor = [], []
     for kf in keyframes.get("velocities", []):
         k = round(kf["stamp_ns"] * 1e-9 * renderer.config.rate_hz)

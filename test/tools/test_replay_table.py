@@ -17,12 +17,12 @@ def test_keyframe_turn_rates_are_judged_against_the_mean_over_the_readout():
         return {"velocities": [{"stamp_ns": s, "w": list(w_of(k)), "v": [0.0, 0.0, 0.0]}
                                for k, s in zip(range(0, 40, 4), stamps, strict=True)]}
 
-    exact = readout_w_errors(config, keyframes(r.readout_turn_rate))
+    exact = readout_w_errors(r, keyframes(r.readout_turn_rate))
     assert exact["keyframe_w_readout_error"] < 1e-9
     assert exact["readout_w_vs_instantaneous"] > 0.3  # hand-held shake within the readout
     # the instantaneous row-0 rate (what the bag's ground truth carries) is that far off
-    inst = readout_w_errors(config, keyframes(lambda k: r.frame_pose(k)[3]))
+    inst = readout_w_errors(r, keyframes(lambda k: r.frame_pose(k)[3]))
     assert inst["keyframe_w_readout_error"] > 0.3
-    half = readout_w_errors(config, keyframes(lambda k: 0.5 * r.readout_turn_rate(k)))
+    half = readout_w_errors(r, keyframes(lambda k: 0.5 * r.readout_turn_rate(k)))
     assert np.isclose(half["keyframe_w_readout_error"], 0.5)
-    assert readout_w_errors(config, {}) == {}  # the pairwise backend: no keyframes
+    assert readout_w_errors(r, {}) == {}  # the pairwise backend: no keyframes
