@@ -79,6 +79,7 @@ class Harness:
 
     def close(self):
         self.ex.shutdown()
+        self.thread.join(timeout=5.0)  # spin has returned: no handler runs on destroyed nodes
         self.node.destroy_node()
         self.client_node.destroy_node()
 
