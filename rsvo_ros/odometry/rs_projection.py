@@ -167,6 +167,7 @@ def _track_cost(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, a
     for j in range(3):
         c += prior_p2[j] * (w[j] - prior_mu[j]) ** 2
         c += prior_p2[3 + j] * (v[j] - prior_mu[3 + j]) ** 2
+        c += prior_p2[6 + j] * (p[j] - prior_mu[6 + j]) ** 2
         c += acc_p2 * a[j] ** 2
     return c
 
@@ -175,10 +176,13 @@ def _track_cost(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, a
 def track_frame(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, acc_p2,
                 iterations):  # fmt: skip
     """Motion-only RS pose of one frame against fixed world points (Levenberg-Marquardt,
-    Cauchy loss of scale ``robust`` px; a prior ``sum(prior_p2 (vel - prior_mu)^2)`` on
-    ``[w, v]`` and ``acc_p2 |a|^2`` on the angular acceleration; ``acc_p2 <= 0`` holds ``a``).
+    Cauchy loss of scale ``robust`` px; a prior ``sum(prior_p2 (y - prior_mu)^2)`` on
+    ``y = [w, v, p]`` (9,) and ``acc_p2 |a|^2`` on the angular acceleration; ``acc_p2 <= 0``
+    holds ``a``).
     ``X`` (n, 3), ``x_obs`` (n, 2) normalized, ``s`` (n,) row times. Returns R, p, w, v, a,
     residuals (n, 2) px, cost and the Gauss-Newton Hessian (15, 15)."""
+    if prior_mu.shape[0] != 9 or prior_p2.shape[0] != 9:
+        raise ValueError("track_frame: prior_mu and prior_p2 must have 9 entries (w, v, p)")
     R, p, w, v, a = R.copy(), p.copy(), w.copy(), v.copy(), a.copy()
     n = X.shape[0]
     Jf = np.empty((2, FRAME_PARAMS))
@@ -214,6 +218,8 @@ def track_frame(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, a
             g[6 + j] += prior_p2[j] * (w[j] - prior_mu[j])
             H[9 + j, 9 + j] += prior_p2[3 + j]
             g[9 + j] += prior_p2[3 + j] * (v[j] - prior_mu[3 + j])
+            H[3 + j, 3 + j] += prior_p2[6 + j]
+            g[3 + j] += prior_p2[6 + j] * (p[j] - prior_mu[6 + j])
             if acc_p2 > 0:
                 H[12 + j, 12 + j] += acc_p2
                 g[12 + j] += acc_p2 * a[j]

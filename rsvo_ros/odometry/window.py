@@ -4,8 +4,9 @@ Two jobs (ORB-SLAM's split):
 
 - tracking (:meth:`WindowOdometry.track`, every frame): the frame's pose and ``(w, v)`` from a
   motion-only RS optimisation against the map's points, each observation at its own row time,
-  started from the constant-velocity prediction, with a Cauchy loss and a loose prior tying the
-  velocities to the motion since the last frame; the keyframe decision (parallax after removing
+  started from the constant-velocity prediction, with a Cauchy loss, a loose prior tying the
+  velocities to the motion since the last frame and one tying the position to the prediction
+  (a std of one predicted step); the keyframe decision (parallax after removing
   the rotation, the share of map points still tracked, a time limit);
 - mapping (:meth:`WindowOdometry.map_keyframe`): the keyframe into the local map, new
   landmarks, the window BA, the new points for tracking. The node can run it on another thread
@@ -83,6 +84,11 @@ class WindowOptions:
     prior_w_rad_s: float = 0.3
     prior_v_rel: float = 0.3
     prior_v_floor: float = 0.05
+    # ... and on its position, centred on the constant-velocity prediction with a std of this
+    # many times the predicted step (0: none). One frame fixes its position along the view
+    # poorly (a few dozen points, shallow depth range): without it, tracked frames of
+    # strong-shake walks jumped 10-40 cm back and forth around a 3 cm step (README)
+    prior_p_step: float = 1.0
     lost_frames_to_reset: int = 5  # held frames in a row before the map starts over
     pair_prior_rotation_rad: float = 0.02  # the pair estimator's rotation prior (see __init__)
     pair_model: str = "rs"  # RS model: how pairs start the map ("rs" or "gs_cv", see _pair)
@@ -440,11 +446,17 @@ class WindowOdometry:
         if not np.isfinite(w_cv).all():
             w_cv, v_cv = self._last.w, self._last.v
         sv = max(o.prior_v_rel * float(np.linalg.norm(v_cv)), o.prior_v_floor)
-        p2 = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2], 3)
+        # the position's prior: the constant-velocity prediction, with a std of
+        # prior_p_step x its step (scale-free; no step, no prior)
+        step = float(np.linalg.norm(pred.p - self._last.p))
+        sp = o.prior_p_step * step
+        pp2 = 1.0 / sp**2 if sp > 0 and np.isfinite(sp) else 0.0
+        p2 = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2, pp2], 3)
         R, p, w, v, a, res, cost, H = rs_projection.track_frame(
             pred.R, pred.p, self._last.w, self._last.v, np.zeros(3), X[ia], obs.x[ib],
-            obs.s[ib], self.focal, o.track_robust_px * self._px, np.concatenate([w_cv, v_cv]),
-            p2, acc_prior_p2(self.map.options.prior_acc_rad_s2), o.track_iterations)  # fmt: skip
+            obs.s[ib], self.focal, o.track_robust_px * self._px,
+            np.concatenate([w_cv, v_cv, pred.p]), p2,
+            acc_prior_p2(self.map.options.prior_acc_rad_s2), o.track_iterations)  # fmt: skip
         err = np.linalg.norm(res, axis=1)
         inl = err < o.track_inlier_px * self._px
         if inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)) \

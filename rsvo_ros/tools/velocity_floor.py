@@ -57,7 +57,7 @@ def frame_errors(renderer: SequenceRenderer, k: int, rng: np.random.Generator,
     acc_p2 = 1.0 / acc_std**2 if acc_std > 0 else 0.0
     R, _, w, _, a, *_ = rs_projection.track_frame(
         start_R, start_p, np.zeros(3), np.zeros(3), np.zeros(3), X[seen], x[seen], s[seen], f,
-        1.5 * f / 1000.0, np.zeros(6), np.zeros(6), acc_p2, 20)  # fmt: skip
+        1.5 * f / 1000.0, np.zeros(9), np.zeros(9), acc_p2, 20)  # fmt: skip
     R_first, R_last = row_pose(np.array([0.0, H - 1.0]))[0]
     w_mean_row0 = so3_log(R_first.T @ R_last) / ((H - 1) * tau)
     w_mean = Rm.T @ R_first @ w_mean_row0  # in the reference-row frame, as the tracked w

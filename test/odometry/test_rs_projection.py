@@ -107,13 +107,41 @@ def test_motion_only_tracking_recovers_pose_velocities_and_acceleration(rng, acc
              np.array([0.4, -0.8, 0.2]), np.array([1.5, 0.2, -0.5]), np.array(acc))  # fmt: skip
     x, s = _project(truth, X, tau, 0.0, FOCAL)
     start = (np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
-    R, p, w, v, a, res, cost, H = rp.track_frame(*start, X, x, s, FOCAL, 1.0, np.zeros(6),
-                                                 np.zeros(6), 1e-12, 50)  # fmt: skip
+    R, p, w, v, a, res, cost, H = rp.track_frame(*start, X, x, s, FOCAL, 1.0, np.zeros(9),
+                                                 np.zeros(9), 1e-12, 50)  # fmt: skip
     assert H.shape == (NP, NP)
     assert np.abs(res).max() < 1e-6
     assert np.allclose(R, truth[0], atol=1e-7) and np.allclose(p, truth[1], atol=1e-7)
     assert np.allclose(w, truth[2], atol=1e-4) and np.allclose(v, truth[3], atol=1e-4)
     assert np.allclose(a, truth[4], atol=1e-2)
+
+
+def test_tracking_position_prior_damps_a_poorly_fixed_position(rng):
+    """Few noisy points fix a frame's position along the view
+    poorly; a prior centred on the true position (the constant-velocity prediction in the
+    window) brings it closer, a tight one holds it at its centre, and a prior of the wrong
+    length is an error, not a read past the array."""
+    tau = 40e-6
+    X = _scene(rng, 25)
+    truth = (so3_exp([0.02, -0.05, 0.01]), np.array([0.1, -0.05, 0.3]),
+             np.array([0.4, -0.8, 0.2]), np.array([1.5, 0.2, -0.5]), np.zeros(3))  # fmt: skip
+    x, s = _project(truth, X, tau, 0.0, FOCAL)
+    start = (truth[0], truth[1] + [0.0, 0.0, 0.05], truth[2], truth[3], np.zeros(3))
+    errors = {}
+    for name, p_std, centre in (("none", 0.0, truth[1]), ("truth", 0.01, truth[1]),
+                                ("tight", 1e-5, truth[1] + [0.02, 0.0, 0.0])):
+        off = []
+        for trial in range(20):
+            noisy = x + np.random.default_rng(trial).normal(0.0, 1.0 / FOCAL, x.shape)
+            mu = np.concatenate([truth[2], truth[3], centre])
+            p2 = np.concatenate([np.full(6, 1e-6), np.full(3, 1.0 / p_std**2 if p_std else 0.0)])
+            _, p, *_ = rp.track_frame(*start, X, noisy, s, FOCAL, 1.0, mu, p2, 0.0, 30)
+            off.append(np.linalg.norm(p - centre))
+        errors[name] = float(np.sqrt(np.mean(np.square(off))))
+    assert errors["truth"] < 0.5 * errors["none"]
+    assert errors["tight"] < 1e-3
+    with pytest.raises(ValueError, match="9 entries"):
+        rp.track_frame(*start, X, x, s, FOCAL, 1.0, np.zeros(6), np.zeros(6), 0.0, 5)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
