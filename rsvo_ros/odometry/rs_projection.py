@@ -350,9 +350,13 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
                     J2 = Jf if side2 == 0 else Ja
                     for i2 in range(n_par):
                         c2 = col[f2, i2]
-                        if c2 < 0:
+                        if c2 < ci:  # (also the fixed ones, -1): the upper triangle only
                             continue
                         Hcc[ci, c2] += wt * (J1[0, i] * J2[0, i2] + J1[1, i] * J2[1, i2])
+    n_cols = Hcc.shape[0]
+    for c1 in range(n_cols):  # the lower triangle, mirrored
+        for c2 in range(c1 + 1, n_cols):
+            Hcc[c2, c1] = Hcc[c1, c2]
     for kk in range(K):  # velocity priors
         for i in range(6):
             ci = col[kk, 6 + i]
@@ -393,38 +397,64 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
         seen[obs_lm[o], obs_kf[o]] = True
     for j in range(M):
         seen[j, lm_anchor[j]] = True
+    # per landmark, its free frame parameters (column, frame, parameter) for the Schur sums
+    n_free = np.zeros(M, np.int64)
+    for j in range(M):
+        for k1 in range(K):
+            if seen[j, k1]:
+                for i1 in range(n_par):
+                    if col[k1, i1] >= 0:
+                        n_free[j] += 1
+    start = np.zeros(M + 1, np.int64)
+    for j in range(M):
+        start[j + 1] = start[j] + n_free[j]
+    free_col = np.empty(start[M], np.int64)
+    free_k = np.empty(start[M], np.int64)
+    free_i = np.empty(start[M], np.int64)
+    for j in range(M):
+        m = start[j]
+        for k1 in range(K):
+            if seen[j, k1]:
+                for i1 in range(n_par):
+                    if col[k1, i1] >= 0:
+                        free_col[m], free_k[m], free_i[m] = col[k1, i1], k1, i1
+                        m += 1
+    h = np.empty(start[M])
+    W = np.empty((n_cols, n_cols))  # sum_j Hcp_j Hcp_j^T / hpp_j (undamped)
+    u = np.empty(n_cols)  # sum_j Hcp_j gp_j / hpp_j
     lam = 1e-4
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007
         _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s,
                        rho, focal, robust, mu, p2, acc_p2, col, n_par, Hcc, gc, Hcp, hpp, gp)
+        # the landmarks' part of the Schur complement, once per iteration: damping a
+        # landmark's block by (1 + lambda) scales its terms by 1 / (1 + lambda)
+        W[:] = 0.0
+        u[:] = 0.0
+        for j in range(M):
+            inv0 = 1.0 / (hpp[j] + 1e-12)
+            for m in range(start[j], start[j + 1]):
+                h[m] = Hcp[free_k[m], j, free_i[m]]
+            for m in range(start[j], start[j + 1]):
+                c1 = free_col[m]
+                h1 = h[m] * inv0
+                u[c1] += h1 * gp[j]
+                for m2 in range(m, start[j + 1]):
+                    W[c1, free_col[m2]] += h1 * h[m2]
+        for c1 in range(n_cols):  # each pair was added once, to either triangle: fold them
+            for c2 in range(c1 + 1, n_cols):
+                W[c1, c2] += W[c2, c1]
+                W[c2, c1] = W[c1, c2]
         accepted = False
         while lam < LAMBDA_MAX:
-            # Schur complement on the landmarks (damped like the rest)
-            S = Hcc.copy()
-            b = -gc
+            scale = 1.0 / (1.0 + lam)
+            S = Hcc - scale * W
+            b = -gc + scale * u
             for c in range(n_cols):
                 S[c, c] += lam * max(Hcc[c, c], 1e-9)
             inv = np.empty(M)
             for j in range(M):
                 inv[j] = 1.0 / (hpp[j] * (1.0 + lam) + 1e-12)
-            for j in range(M):
-                for k1 in range(K):
-                    if not seen[j, k1]:
-                        continue
-                    for i1 in range(n_par):
-                        c1 = col[k1, i1]
-                        if c1 < 0:
-                            continue
-                        h1 = Hcp[k1, j, i1] * inv[j]
-                        b[c1] += h1 * gp[j]
-                        for k2 in range(K):
-                            if not seen[j, k2]:
-                                continue
-                            for i2 in range(n_par):
-                                c2 = col[k2, i2]
-                                if c2 >= 0:
-                                    S[c1, c2] -= h1 * Hcp[k2, j, i2]
             dc = np.linalg.solve(S, b)
             R_c, p_c, w_c, v_c, acc_c = R.copy(), p.copy(), w.copy(), v.copy(), acc.copy()
             for k in range(K):
@@ -440,12 +470,8 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
             rho_c = rho.copy()
             for j in range(M):
                 gj = gp[j]
-                for k in range(K):
-                    if not seen[j, k]:
-                        continue
-                    for i in range(n_par):
-                        if col[k, i] >= 0:
-                            gj += Hcp[k, j, i] * dc[col[k, i]]
+                for m in range(start[j], start[j + 1]):
+                    gj += h[m] * dc[free_col[m]]
                 rho_c[j] = min(max(rho[j] - gj * inv[j], RHO_MIN), RHO_MAX)
             c_new = _window_cost(R_c, p_c, w_c, v_c, acc_c, obs_kf, obs_lm, obs_x, obs_s,
                                  lm_anchor, lm_x, lm_s, rho_c, focal, robust, mu, p2, acc_p2,
