@@ -117,10 +117,9 @@ def test_motion_only_tracking_recovers_pose_velocities_and_acceleration(rng, acc
 
 
 def test_tracking_position_prior_damps_a_poorly_fixed_position(rng):
-    """Few noisy points fix a frame's position along the view
-    poorly; a prior centred on the true position (the constant-velocity prediction in the
-    window) brings it closer, a tight one holds it at its centre, and a prior of the wrong
-    length is an error, not a read past the array."""
+    """Few noisy points fix a frame's position poorly; a prior centred on the true position
+    (the constant-velocity prediction in the window) brings it closer, a tight one holds it
+    at its centre, and a prior of the wrong length is an error, not a read past the array."""
     tau = 40e-6
     X = _scene(rng, 25)
     truth = (so3_exp([0.02, -0.05, 0.01]), np.array([0.1, -0.05, 0.3]),
