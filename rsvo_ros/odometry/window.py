@@ -154,6 +154,9 @@ class WindowOdometry:
         self.row_ref = float(self.K[1, 2])
         self.line_delay = float(line_delay)
         self.options = options or WindowOptions()
+        if not self.options.prior_p_step >= 0:  # also NaN
+            raise ValueError(f"WindowOptions.prior_p_step must be >= 0 (0: no position prior), "
+                             f"got {self.options.prior_p_step}")
         self.model = model
         self.ransac = ransac or RansacOptions()
         # the pair estimator starts and recovers the map: its velocities seed every keyframe's,

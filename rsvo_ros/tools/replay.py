@@ -558,6 +558,8 @@ def window_option_arg(text: str) -> tuple[str, float]:
         raise argparse.ArgumentTypeError(f"{text!r}: the value is not a number") from None
     if not np.isfinite(number):
         raise argparse.ArgumentTypeError(f"{text!r}: the value must be finite")
+    if number < 0:  # every numeric field is a count, a threshold, a share or a std
+        raise argparse.ArgumentTypeError(f"{text!r}: the value must be >= 0")
     if NUMERIC_WINDOW_OPTIONS[name] is int and number != int(number):
         raise argparse.ArgumentTypeError(f"{text!r}: {name} takes a whole number")
     return name, number

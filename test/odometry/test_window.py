@@ -227,6 +227,12 @@ def test_the_position_prior_steadies_tracked_frames_under_strong_shake():
     assert ate[default] < 0.9 * ate[0.0], ate
 
 
+@pytest.mark.parametrize("bad", [-1.0, float("nan")])
+def test_a_negative_position_prior_is_refused(bad):
+    with pytest.raises(ValueError, match="prior_p_step must be >= 0"):
+        WindowOdometry(np.diag([500.0, 500.0, 1.0]), 0.0, WindowOptions(prior_p_step=bad))
+
+
 def test_walk_motion_has_its_features():
     """rsvo_synth --motion walk: walking speed, a stop with pure rotation in long sequences."""
     cfg = SynthConfig(frames=300, motion="walk", severity=1.0, seed=2)

@@ -22,6 +22,7 @@ def test_paced_run_reports_ate_times_and_outcomes(capsys):
 @pytest.mark.parametrize("args, message", [
     (["--window-option", "async_mapping=1"], "not a numeric WindowOptions field"),
     (["--window-option", "min_inlier_ratio=half"], "the value is not a number"),
+    (["--window-option", "prior_p_step=-1"], "the value must be >= 0"),
     (["--resolution", "640"], "expected WIDTHxHEIGHT"),
 ])
 def test_paced_run_rejects_bad_arguments(args, message, capsys):
