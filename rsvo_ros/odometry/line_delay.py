@@ -35,7 +35,7 @@ from scipy.interpolate import CubicSpline
 
 from rsvo_ros.core.geometry import so3_log
 from rsvo_ros.odometry.frame import FrameState
-from rsvo_ros.odometry.local_map import WindowProblem, solve_window
+from rsvo_ros.odometry.local_map import WindowProblem, free_columns, solve_window
 
 
 @dataclass
@@ -201,17 +201,16 @@ class LineDelayCalibrator:
         p2[has, 3:] = 1.0 / np.maximum(o.prior_v_rel * speed[has], 1e-3)[:, None] ** 2
         # the accelerations held at zero (the trajectory's velocities are constant over each
         # readout): a free one would take up part of what the readout's length explains
-        col = pr.col.copy()
-        col[:, 12:] = -1
-        free = col >= 0
-        col[free] = np.arange(int(free.sum()))
+        held = pr.col < 0
+        held[:, 12:] = True
+        col, n_cols = free_columns(held)
         out = np.empty(len(taus))
         for i, tau in enumerate(taus):
             q = WindowProblem(
                 pr.R, pr.p, mu[:, :3].copy(), mu[:, 3:].copy(), np.zeros_like(pr.acc),
                 pr.obs_kf, pr.obs_lm, pr.obs_x, win.obs_rows * tau, pr.lm_anchor, pr.lm_x,
                 win.lm_rows * tau, pr.rho, pr.focal, pr.robust_px, mu, p2, 0.0, col,
-                int(free.sum()))  # fmt: skip
+                n_cols)  # fmt: skip
             sol = solve_window(q, o.iterations)
             out[i] = sol.cost if np.isfinite(sol.cost) else np.inf
         return out

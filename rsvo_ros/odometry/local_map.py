@@ -141,6 +141,15 @@ def solve_window(prob: WindowProblem, iterations: int) -> WindowSolution:
     return WindowSolution(R, p, w, v, acc, rho, res, float(cost), int(it))
 
 
+def free_columns(held: np.ndarray) -> tuple[np.ndarray, int]:
+    """The window system's column of each frame parameter (``held`` (K, 15) True: -1), in
+    frame-major order, and the number of free ones."""
+    col = -np.ones(held.shape, np.int64)
+    n_cols = int((~held).sum())
+    col[~held] = np.arange(n_cols)
+    return col, n_cols
+
+
 def triangulate(Ra, pa, xa, Rb, pb, xb):
     """Midpoint triangulation of rays ``p + lambda R (x, y, 1)`` of two views, vectorized.
 
@@ -307,8 +316,7 @@ class LocalMap:
             held[1, 3 + int(np.argmax(np.abs(base)))] = True
         if o.prior_acc_rad_s2 <= 0:
             held[:, 12:15] = True  # constant velocity within a frame
-        col = -np.ones((K, rs_projection.FRAME_PARAMS), np.int64)
-        col[~held] = np.arange(int((~held).sum()))  # held poses keep their velocities free
+        col, n_cols = free_columns(held)  # held poses keep their velocities free
         mu, p2 = np.zeros((K, 6)), np.zeros((K, 6))
         for k, kf in enumerate(self.keyframes):
             prior = kf.trajectory_velocity()
@@ -327,7 +335,7 @@ class LocalMap:
             np.array([self.landmarks[t].x for t in lm_ids]),
             np.array([self.landmarks[t].s for t in lm_ids]),
             np.array([self.landmarks[t].rho for t in lm_ids]), self.focal, o.robust_px, mu, p2,
-            acc_prior_p2(o.prior_acc_rad_s2), col, int((~held).sum()), lm_ids, obs_tid,
+            acc_prior_p2(o.prior_acc_rad_s2), col, n_cols, lm_ids, obs_tid,
             np.concatenate(obs_rows).astype(float), np.array(anchor_rows, float),
             np.array([kf.state.stamp_ns for kf in self.keyframes], np.int64))  # fmt: skip
 

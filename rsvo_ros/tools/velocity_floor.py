@@ -10,7 +10,7 @@ For each ``rsvo_synth --motion walk`` severity (640x360, 36 ms readout, seed 0),
   ``summary.json``'s keyframe error is measured against);
 - the tracked ``w`` (no velocity prior) against that mean, with the paper's constant velocity
   within a frame and with an angular acceleration during the readout (prior std
-  ``ACCELERATION_STD``, as ``rsvo_replay --angular-acceleration``);
+  ``ACCELERATION_STD_RAD_S2``, as ``rsvo_replay --angular-acceleration``);
 - the tracked row-0 rate (``w + s0 a``, what ``summary.json`` and the Odometry twist report)
   against the instantaneous row-0 rate;
 - the row-0 rotation error of the tracked frame.
@@ -26,9 +26,9 @@ import numpy as np
 
 from rsvo_ros.core.geometry import so3_exp, so3_log
 from rsvo_ros.odometry import rs_projection
+from rsvo_ros.odometry.local_map import ACCELERATION_STD_RAD_S2
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 
-ACCELERATION_STD = 50.0  # rad/s^2, as the replay table's acceleration column
 POINTS = 300
 DEPTH_M = (2.0, 8.0)
 
@@ -58,9 +58,8 @@ def frame_errors(renderer: SequenceRenderer, k: int, rng: np.random.Generator,
     R, _, w, _, a, *_ = rs_projection.track_frame(
         start_R, start_p, np.zeros(3), np.zeros(3), np.zeros(3), X[seen], x[seen], s[seen], f,
         1.5 * f / 1000.0, np.zeros(9), np.zeros(9), acc_p2, 20)  # fmt: skip
-    R_first, R_last = row_pose(np.array([0.0, H - 1.0]))[0]
-    w_mean_row0 = so3_log(R_first.T @ R_last) / ((H - 1) * tau)
-    w_mean = Rm.T @ R_first @ w_mean_row0  # in the reference-row frame, as the tracked w
+    w_mean_row0 = renderer.readout_turn_rate(k)
+    w_mean = Rm.T @ R0 @ w_mean_row0  # in the reference-row frame, as the tracked w
     s0 = -row_ref * tau
     R0_est = R @ so3_exp(s0 * (w + 0.5 * s0 * a))
     return (float(np.linalg.norm(w_mean_row0 - w0) / np.linalg.norm(w0)),
@@ -74,7 +73,7 @@ def velocity_floor(severity: float, noise_px: float = 0.3, frames: range = range
     renderer = SequenceRenderer(SynthConfig(motion="walk", severity=severity, seed=seed,
                                             frames=max(frames) + 1))  # fmt: skip
     out = {"severity": severity}
-    for label, acc in (("constant", 0.0), ("acceleration", ACCELERATION_STD)):
+    for label, acc in (("constant", 0.0), ("acceleration", ACCELERATION_STD_RAD_S2)):
         rng = np.random.default_rng([seed, 1])
         errs = np.array([frame_errors(renderer, k, rng, noise_px, acc) for k in frames])
         out["readout_mean_vs_instantaneous"] = float(np.median(errs[:, 0]))
