@@ -218,7 +218,7 @@ class OdometryPipeline:
         if prev_stamp is not None:
             self._intervals = (self._intervals + [stamp_ns - prev_stamp])[-15:]
         self._calibrate(stamp_ns, gray.shape[0])
-        pair = self.tracker.track(gray)
+        pair = self.tracker.track(gray, stamp_ns)
         if self.options.backend == "window":
             interval = None if prev_stamp is None else (stamp_ns - prev_stamp) * 1e-9
             return self._process_window(stamp_ns, pair, interval, idx, result)

@@ -7,7 +7,14 @@ no faster than ``--rate`` (with async mapping the window BA runs beside tracking
 node; inline mapping is not paced, as in the replay), and prints one JSON line: ATE after Sim(3)
 alignment, frame time median and p95, and how many frames ended how. ``--window-option
 NAME=VALUE`` sets a numeric :class:`WindowOptions` field (for A/B runs), ``--slow-ms`` lists
-frames that took longer.
+frames that took longer. ``--drop`` (async) applies the node's newest-frame policy: a frame that
+arrives while another is processed waits, and a newer one replaces it (the replaced one is
+dropped and counted); the ATE is then over the frames that were processed. It measures the
+pipeline's own pace without DDS, image transport or another process on the cores (the live
+probe, ``python -m rsvo_ros.ros.latency``, has those). ``--drop-every N`` leaves out every N-th
+frame (a camera or a node that loses frames regularly; deterministic with inline mapping), and
+``--no-flow-prediction`` turns off the tracker's start from the last image motion after such a
+gap (``TrackerOptions.predict_flow``).
 """
 
 from __future__ import annotations
@@ -26,20 +33,34 @@ from rsvo_ros.tools.replay import accuracy, set_window_options, window_option_ar
 
 
 def paced_run(frames: int, rate: float, mapping: str, seed: int, width: int, height: int,
-              window_options: list[tuple[str, float]],
-              slow_ms: float | None = None) -> dict:  # fmt: skip
+              window_options: list[tuple[str, float]], slow_ms: float | None = None,
+              drop: bool = False, drop_every: int = 0,
+              flow_prediction: bool = True) -> dict:  # fmt: skip
     cfg = SynthConfig(frames=frames, motion="walk", width=width, height=height, seed=seed)
     renderer = SequenceRenderer(cfg)
     rendered = list(renderer)
     options = PipelineOptions()
     options.window.async_mapping = mapping == "async"
     set_window_options(options, window_options)
+    options.tracker.predict_flow = flow_prediction
     pipeline = OdometryPipeline(renderer.K, None, cfg.tau, options)
-    est, gt, times, slow = {}, {}, [], []
+    est, gt, times, slow, delays = {}, {}, [], [], []
     outcomes: collections.Counter = collections.Counter()
+    dropped = 0
     t0 = time.monotonic()
     try:
-        for k, frame in enumerate(rendered):
+        k = 0
+        while k < len(rendered):
+            if drop:
+                # the newest frame that has arrived (the ones it replaced are dropped)
+                newest = min(int((time.monotonic() - t0) * rate), len(rendered) - 1)
+                dropped += max(newest - k, 0)
+                k = max(k, newest)
+            if drop_every and k % drop_every == drop_every - 1:
+                dropped += 1
+                k += 1
+                continue
+            frame = rendered[k]
             while options.window.async_mapping and time.monotonic() < t0 + k / rate:
                 time.sleep(0.001)
             stamp = round(frame.stamp * 1e9)
@@ -49,13 +70,22 @@ def paced_run(frames: int, rate: float, mapping: str, seed: int, width: int, hei
             if slow_ms is not None and res.time_ms > slow_ms:
                 slow.append([k, round(res.time_ms, 1), res.reason or "tracked"])
             gt[stamp], est[stamp] = frame.pose(), res.T_world_cam
+            delays.append(1e3 * (time.monotonic() - t0 - k / rate))
+            k += 1
     finally:
         pipeline.close()
     out = {"frames": frames, "rate_hz": rate, "mapping": mapping, "seed": seed,
            "resolution": f"{width}x{height}", "window_options": dict(window_options),
+           "flow_prediction": flow_prediction,
            "ate_m": accuracy(gt, est)["ate_m"]["rmse"],
            "frame_ms_median": float(np.median(times)),
            "frame_ms_p95": float(np.percentile(times, 95)), "outcomes": dict(outcomes)}
+    if drop or drop_every:
+        out.update(processed=len(times), dropped=dropped)
+    if drop:
+        # from the frame's arrival (its time in the stream) to its result
+        out.update(delay_ms_median=float(np.median(delays)),
+                   delay_ms_p95=float(np.percentile(delays, 95)))
     if slow_ms is not None:
         out["slow_frames"] = slow
     return out
@@ -71,6 +101,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window-option", type=window_option_arg, action="append", default=[],
                     metavar="NAME=VALUE", help="a numeric WindowOptions field (repeatable)")
     ap.add_argument("--slow-ms", type=float, default=None, help="list frames slower than this")
+    ap.add_argument("--drop", action="store_true",
+                    help="async: the node's newest-frame policy (frames that arrive while one is "
+                         "processed are replaced by newer ones and dropped)")
+    ap.add_argument("--drop-every", type=int, default=0, metavar="N",
+                    help="leave out every N-th frame (0: none)")
+    ap.add_argument("--no-flow-prediction", action="store_true",
+                    help="KLT starts from no motion after a gap too (TrackerOptions.predict_flow)")
     args = ap.parse_args(argv)
     try:
         width, height = (int(v) for v in args.resolution.lower().split("x"))
@@ -78,8 +115,13 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--resolution {args.resolution!r}: expected WIDTHxHEIGHT, e.g. 640x480")
     if args.frames < 2 or args.rate <= 0:
         ap.error("--frames must be at least 2 and --rate positive")
+    if args.drop_every < 0 or args.drop_every == 1:
+        ap.error("--drop-every must be 0 (none) or at least 2")
+    if args.drop and args.mapping != "async":
+        ap.error("--drop needs --mapping async (inline mapping is not paced, as in the replay)")
     print(json.dumps(paced_run(args.frames, args.rate, args.mapping, args.seed, width, height,
-                               args.window_option, args.slow_ms)))  # fmt: skip
+                               args.window_option, args.slow_ms, args.drop, args.drop_every,
+                               not args.no_flow_prediction)))  # fmt: skip
     return 0
 
 
