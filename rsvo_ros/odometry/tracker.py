@@ -1,5 +1,6 @@
 """Feature tracking for the frame-pair pipeline: bucketed corners, pyramidal KLT with a
-forward-backward check, re-detection where tracks thin out.
+forward-backward check (after a dropped frame started from each track's last image motion),
+re-detection where tracks thin out.
 
 Pure numpy + OpenCV, no ROS.
 """

@@ -56,7 +56,7 @@ def test_the_flow_prediction_keeps_a_fast_pan_across_a_dropped_frame(wide):
     pair, right = _pan_with_a_dropped_frame(wide, options)
     assert right.sum() >= 120 and right.mean() > 0.95, (len(right), right.sum())
     off = TrackerOptions(max_features=200, predict_flow=False)
-    pair_off, right_off = _pan_with_a_dropped_frame(wide, off)
+    _, right_off = _pan_with_a_dropped_frame(wide, off)
     assert right_off.sum() < 60, right_off.sum()
     # without stamps there is nothing to scale the motion by: no prediction
     _, right_nostamp = _pan_with_a_dropped_frame(wide, options, stamps=False)
