@@ -100,16 +100,15 @@ class FeatureTracker:
             lk = dict(winSize=(o.window_px, o.window_px), maxLevel=o.pyramid_levels,
                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
             p0 = self._pts.reshape(-1, 1, 2)
+            # after a gap, both ways from the prediction: back from where the point landed,
+            # started where the predicted motion takes it back to
             guess = self._predicted_motion(dt)
-            if guess is None:
-                p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, None, **lk)
-                p0b, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1, None, **lk)
-            else:
-                # both ways from the prediction: back from where the point landed, started
-                # where the predicted motion takes it back to
+            if guess is not None:
                 lk["flags"] = cv2.OPTFLOW_USE_INITIAL_FLOW
-                p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, p0 + guess, **lk)
-                p0b, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1, p1 - guess, **lk)
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0,
+                                                  None if guess is None else p0 + guess, **lk)
+            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1,
+                                                   None if guess is None else p1 - guess, **lk)
             fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
             h, w = img.shape
             p1f = p1.reshape(-1, 2)
