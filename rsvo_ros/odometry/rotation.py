@@ -14,7 +14,7 @@ parallax threshold. Pure numpy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,6 +28,12 @@ class RotationFit:
     w: np.ndarray  # (3,) turn rate (rad/s) in the camera frame
     residual_px: np.ndarray  # (n,) image distance per shared track after the fit
     ok: bool
+    a: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) change of the turn rate
+
+    def row_rotations(self, s: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) world-from-camera of the rows at row times ``s`` (n,)."""
+        s = np.asarray(s, float)[:, None]
+        return self.R @ so3_exp(s * (self.w + 0.5 * s * self.a))
 
     @property
     def parallax_px(self) -> float:
@@ -45,29 +51,34 @@ def _skew(u: np.ndarray) -> np.ndarray:
 
 def fit_rotation(posed: FrameState, x_posed: np.ndarray, s_posed: np.ndarray,
                  x: np.ndarray, s: np.ndarray, R0: np.ndarray, w0: np.ndarray, focal: float,
-                 robust_px: float = 1.5, iterations: int = 6) -> RotationFit:  # fmt: skip
+                 robust_px: float = 1.5, iterations: int = 6,
+                 acceleration: bool = False) -> RotationFit:  # fmt: skip
     """Rotation and turn rate of a frame that sees the tracks ``x`` (n, 2, normalized) at row
     times ``s`` (n,), seen by the ``posed`` frame at ``x_posed`` / ``s_posed``, if it only
     turned since (its position is not a parameter). Gauss-Newton with a Cauchy loss of scale
     ``robust_px``, started from ``R0`` / ``w0`` (Jacobians to first order in the turn over
-    the readout, a few degrees)."""
+    the readout, a few degrees). ``acceleration``: the frame's turn rate may also change over
+    its readout (``a``, the rows at ``Exp(s w + s^2/2 a)``); against the posed frame's rows
+    that is the change of the two frames' accelerations."""
     R_rows, _ = posed.row_cameras(s_posed)
     rays = np.einsum("nij,nj->ni", R_rows, np.column_stack([x_posed, np.ones(len(x_posed))]))
     s = np.asarray(s, float)
     R, w = np.asarray(R0, float).copy(), np.asarray(w0, float).copy()
+    a = np.zeros(3)
+    n_par = 9 if acceleration else 6
 
-    def project(R: np.ndarray, w: np.ndarray):
+    def project(R: np.ndarray, w: np.ndarray, a: np.ndarray):
         u = rays @ R  # the rays in the frame's reference-row camera (R^T ray)
-        E = so3_exp(s[:, None] * w)  # (n, 3, 3): that camera -> each row's
+        E = so3_exp(s[:, None] * (w + 0.5 * s[:, None] * a))  # (n, 3, 3): -> each row's
         q = np.einsum("nji,nj->ni", E, u)
         z = np.where(q[:, 2] > 1e-9, q[:, 2], np.nan)
         return (q[:, :2] / z[:, None] - x) * focal, u, E, q, z
 
-    r, u, E, q, z = project(R, w)
+    r, u, E, q, z = project(R, w, a)
     for _ in range(iterations):
         good = np.isfinite(r).all(axis=1)
-        if good.sum() < 6:
-            return RotationFit(R, w, np.full(len(x), np.inf), False)
+        if good.sum() < n_par:
+            return RotationFit(R, w, np.full(len(x), np.inf), False, a)
         # q = E^T Exp(-d) u: dq/dd = E^T [u]x, and the turn rate's dq/dw = s E^T [u]x
         dq = np.einsum("nji,njk->nik", E, _skew(u))
         zz = np.where(good, z, 1.0)
@@ -75,22 +86,28 @@ def fit_rotation(posed: FrameState, x_posed: np.ndarray, s_posed: np.ndarray,
         dpi[:, 0, 0] = dpi[:, 1, 1] = focal / zz
         dpi[:, :, 2] = -focal * np.where(good[:, None], q[:, :2], 0.0) / zz[:, None] ** 2
         J_rot = np.einsum("nij,njk->nik", dpi, dq)
-        J = np.concatenate([J_rot, J_rot * s[:, None, None]], axis=2)
+        blocks = [J_rot, J_rot * s[:, None, None]]
+        if acceleration:
+            blocks.append(J_rot * (0.5 * s**2)[:, None, None])
+        J = np.concatenate(blocks, axis=2)
         e2 = np.sum(np.where(good[:, None], r, 0.0) ** 2, axis=1)
         wt = np.where(good, 1.0 / (1.0 + e2 / robust_px**2), 0.0)
         Jw = J * wt[:, None, None]
-        H = np.einsum("nai,naj->ij", Jw, J) + 1e-9 * np.eye(6)
+        H = np.einsum("nai,naj->ij", Jw, J) + 1e-9 * np.eye(n_par)
         g = np.einsum("nai,na->i", Jw, np.where(good[:, None], r, 0.0))
         step = -np.linalg.solve(H, g)
         if not np.isfinite(step).all():
-            return RotationFit(R, w, np.full(len(x), np.inf), False)
-        R, w = R @ so3_exp(step[:3]), w + step[3:]
-        r, u, E, q, z = project(R, w)
+            return RotationFit(R, w, np.full(len(x), np.inf), False, a)
+        R, w = R @ so3_exp(step[:3]), w + step[3:6]
+        if acceleration:
+            a = a + step[6:]
+        r, u, E, q, z = project(R, w, a)
         if np.linalg.norm(step[:3]) < 1e-5:  # 0.01 px at 1000 px focal
             break
     res = np.linalg.norm(r, axis=1)
     res[~np.isfinite(res)] = np.inf
-    return RotationFit(R, w, res, bool(np.isfinite(R).all() and np.isfinite(w).all()))
+    ok = bool(np.isfinite(R).all() and np.isfinite(w).all() and np.isfinite(a).all())
+    return RotationFit(R, w, res, ok, a)
 
 
 def direction_given_rotation(w_prev: np.ndarray, x_prev: np.ndarray, s_prev: np.ndarray,
@@ -108,8 +125,7 @@ def direction_given_rotation(w_prev: np.ndarray, x_prev: np.ndarray, s_prev: np.
     ones = np.ones((len(x), 1))
     a = np.einsum("nij,nj->ni", so3_exp(np.asarray(s_prev, float)[:, None] * w_prev),
                   np.hstack([x_prev, ones]))  # fmt: skip
-    b = np.einsum("nij,nj->ni", fit.R @ so3_exp(np.asarray(s, float)[:, None] * fit.w),
-                  np.hstack([x, ones]))  # fmt: skip
+    b = np.einsum("nij,nj->ni", fit.row_rotations(s), np.hstack([x, ones]))
     ab = np.cross(a, b)
     n = ab / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))[:, None]
     keep = fit.residual_px < 3.0 * robust_px
