@@ -65,6 +65,11 @@ HOLD_COVARIANCE_GROWTH = 4.0  # covariance multiplier of a held (not estimated) 
 # pair estimator's rotation: the chain takes the turning camera's rotation, the direction that
 # makes each track's rays coplanar with it, and the last baseline (0: never)
 ROTATION_ONLY_PARALLAX_PX = 3.0
+# ... and where a constant turn rate per frame leaves up to this many times that, the pair is
+# fitted again with the rate's change over the readout (the severity-2 walks' pairs it brought
+# under the limit had 1.1-1.7x; a vehicle's 2-3x is its translation, and the second fit costs
+# about 3 ms)
+ACCELERATION_FIT_UP_TO = 2.0
 DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
 
 
@@ -256,7 +261,7 @@ class PairwiseChain:
         first = FrameState(0, np.eye(3), np.zeros(3), w_p, np.zeros(3))
         robust = 1.5 * focal / 1000.0
         fit = fit_rotation(first, xa, sa, xb, sb, R_m.T, w_c, focal, robust)
-        if tau > 0 and not (fit.ok and fit.parallax_px <= limit):
+        if tau > 0 and (not fit.ok or limit < fit.parallax_px < ACCELERATION_FIT_UP_TO * limit):
             # a strong shake changes the turn rate within a readout: the rows' wobble left by
             # a constant rate is then taken up by its change (only where the constant rate
             # leaves too much: fitted on every pair, the mild walks' ATE got up to 1.46x worse)
