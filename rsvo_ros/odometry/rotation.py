@@ -7,9 +7,10 @@ estimator has almost no baseline: its rotation came out 1-2.7 deg off per frame 
 walks and its translation direction 70-95 deg off, while a turning camera's fit of the same
 tracks was 0.1-0.4 deg off. A global-shutter rotation fit cannot tell such pairs from ones with
 parallax (a shake that changes the turn rate between frames leaves pixels of wobble), so each
-frame's rows turn here: ``R(s) = R Exp(s w)`` at row time ``s``, the posed frame's rows as its
-state has them. The pairwise chain (odometry/pairwise.py) takes this fit for pairs under a
-parallax threshold. Pure numpy.
+frame's rows turn here: ``R(s) = R Exp(s w)`` at row time ``s`` (optionally
+``Exp(s w + s^2/2 a)``, the rate changing over the readout, for a strong shake), the posed
+frame's rows as its state has them. The pairwise chain (odometry/pairwise.py) takes this fit
+for pairs under a parallax threshold. Pure numpy.
 """
 
 from __future__ import annotations
