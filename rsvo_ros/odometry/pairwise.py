@@ -11,9 +11,9 @@ under noise). Each frame's row-0 pose, what the pipeline reports (CONTRACTS.md),
 chain of middle-row cameras was at the row-0 time: ``row_mid * tau`` before the frame's middle
 row, interpolated between consecutive middle-row poses; for a turning camera (below) the
 rotation is instead its middle row's turned back over the first half of its readout at
-:func:`row0_turn_rate` (the motion between the middle rows plus half the change of the fitted
-rates: a hand-held shake turns the camera too fast for an interpolation between middle rows
-33 ms apart). With a global shutter (``tau = 0``, or the GS models, whose reference row is row
+:func:`row0_turn_rate` (the motion between the middle rows plus a part of the change of the
+fitted rates: a hand-held shake turns the camera too fast for an interpolation between middle
+rows 33 ms apart). With a global shutter (``tau = 0``, or the GS models, whose reference row is row
 0) this is the plain chain.
 
 Motion prior (RS, ``PipelineOptions.motion_prior``): the frames are one continuous motion, so
@@ -70,6 +70,13 @@ ROTATION_ONLY_PARALLAX_PX = 3.0
 # under the limit had 1.1-1.7x; a vehicle's 2-3x is its translation, and the second fit costs
 # about 3 ms)
 ACCELERATION_FIT_UP_TO = 2.0
+# row0_turn_rate's share of the change of the fitted rates. Measured on rendered walks with
+# 8-15 Hz shake (README, "Row 0 of a turning camera"): with the renderer's exact middle-row poses
+# and rates the row-0 rotations were 0.77 deg per frame off for an interpolation between the
+# middle rows (share 0), 0.20 deg at 1/2, 0.135 deg at 0.4 and 0.23 deg at 0.3; with the
+# chain's fitted rates (their difference is noisy) the walks' RPE was least at 0.3 (0.86x of
+# 1/2 on the tuning walks; 0.15: 0.99x, 0.4: 0.89x, 0.7: 1.33x)
+ROW0_RATE_CHANGE_SHARE = 0.3
 DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
 
 
@@ -103,20 +110,21 @@ def _scale_from_inverse_depths(pairs: np.ndarray) -> float:
 
 
 def row0_turn_rate(R_curr_prev: np.ndarray, interval: float, w_prev: np.ndarray,
-                   w_curr: np.ndarray) -> np.ndarray:  # fmt: skip
+                   w_curr: np.ndarray, share: float | None = None) -> np.ndarray:  # fmt: skip
     """The turn rate (rad/s, current camera frame) that takes the current frame's middle-row
     camera back to its row 0, from a pair's middle-row motion ``X_curr = R_curr_prev X_prev``
     over ``interval`` s and the two frames' fitted turn rates.
 
     Each fitted rate stands for its frame's turn during the readout, but two views observe only
-    their difference (the images see how the distortion changed; its common part moves every
-    row alike); the turn between the middle rows is about the mean of the two frames' rates
-    times the interval. Together: ``w = Log(R) / interval + (w_curr - w_prev) / 2``. On
-    rendered walks with 8-15 Hz shake, ground-truth middle-row poses interpolated to row 0 were
-    0.77 deg per frame off, the true middle-row rate 0.86 deg, this 0.20 deg (README)."""
+    their difference ``d`` (the images see how the distortion changed; its common part moves
+    every row alike); the turn between the middle rows is about the mean of the two frames'
+    rates times the interval, so the current frame's own rate is ``Log(R) / interval + d / 2``
+    and the mean over the first half of its readout lies between that and ``Log(R) /
+    interval``: ``Log(R) / interval + share d`` (``share``: ``ROW0_RATE_CHANGE_SHARE``)."""
+    share = ROW0_RATE_CHANGE_SHARE if share is None else share
     r = so3_log(R_curr_prev.T)  # the turn between the middle rows (its axis: either frame's)
-    w_prev_curr = R_curr_prev @ np.asarray(w_prev, float)  # into the current camera
-    return r / max(interval, 1e-9) + 0.5 * (np.asarray(w_curr, float) - w_prev_curr)
+    d = np.asarray(w_curr, float) - R_curr_prev @ np.asarray(w_prev, float)  # current camera
+    return r / max(interval, 1e-9) + share * d
 
 
 def _interpolate(T: np.ndarray, a: float) -> np.ndarray:
