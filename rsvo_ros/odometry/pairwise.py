@@ -30,7 +30,11 @@ Short baselines (``ROTATION_ONLY_PARALLAX_PX``): a pair whose tracks a turning c
 to within a pixel or so (a hand-held walk's consecutive frames) is posed by that camera's
 rotation (odometry/rotation.py), the baseline direction that makes each track's rays coplanar
 with it, and the last baseline: the pair estimator's rotation there was 1-2.7 deg per frame
-off, the turning camera's 0.1-0.4 deg (README, "Short baselines").
+off, the turning camera's 0.1-0.4 deg (README, "Short baselines"). After such a pair the next
+one is first fitted as a turning camera from the last motion and turn rate, and the pair
+estimator runs only where that leaves more than the limit (:meth:`PairwiseChain._turning_first`:
+a walk's first frames then cost a third of the time; a pure rotation that the pair estimator
+would hold for want of parallax is posed as the turn it is).
 
 Scale: the first pair's baseline is ``initial_scale``; each later pair's ``|t|`` makes the
 depths of the points it shares with the previous pair agree (a line fitted to their inverse
@@ -45,7 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rsvo_ros.core.geometry import pose_at_row, pose_inverse, so3_exp, so3_log
+from rsvo_ros.core.geometry import pose_at_row, pose_from_row, pose_inverse, so3_exp, so3_log
 from rsvo_ros.core.lens import undistort_points
 from rsvo_ros.odometry.frame import FrameState
 from rsvo_ros.odometry.rotation import direction_given_rotation, fit_rotation
@@ -91,6 +95,20 @@ class PairStep:
     inlier_ratio: float = 0.0
     scale: float = 0.0
     relative: RelativePoseResult | None = None
+
+
+@dataclass
+class _Turn:
+    """A turning camera's middle-row motion ``X_curr = R X_prev + t`` (unit ``t``), the
+    translation parallax it leaves (median px), the turn rates it held and fitted, and each
+    track's residual (px; nan for the tracks not fitted)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    parallax_px: float
+    w_prev: np.ndarray
+    w_curr: np.ndarray
+    residual_px: np.ndarray
 
 
 def _scale_from_inverse_depths(pairs: np.ndarray) -> float:
@@ -156,6 +174,8 @@ class PairwiseChain:
         self._baseline_range: tuple[float, float] | None = None  # set by restart()
         # the last estimated motion between middle-row cameras: (R, unit t, seconds)
         self._last_motion: tuple[np.ndarray, np.ndarray, float] | None = None
+        # the last pair's current frame's turn rate, when a turning camera posed that pair
+        self._last_turn_rate: np.ndarray | None = None
 
     def restart(self, T_world_cam: np.ndarray, baseline: float) -> None:
         """Go on from another estimate's pose with its last baseline (metres between frames;
@@ -164,6 +184,7 @@ class PairwiseChain:
         self._T_world_mid = None
         self._prev_depths = {}
         self._last_motion = None
+        self._last_turn_rate = None
         if baseline > 0:
             self._last_baseline = baseline
             self._baseline_range = (baseline / RESTART_BASELINE_RANGE,
@@ -174,6 +195,22 @@ class PairwiseChain:
         pts_prev = undistort_points(pair.pts_prev, self.K, self.D)
         pts_curr = undistort_points(pair.pts_curr, self.K, self.D)
         moving = self.motion_prior and self.model == "rs"
+        quick = self._turning_first(pts_prev, pts_curr, pair, interval)
+        if quick is not None:
+            rel, turned = quick
+            row_mid, tau = float(rel.row_ref), self.line_delay
+        else:
+            rel, turned, early = self._estimate_pair(pts_prev, pts_curr, pair, interval, idx,
+                                                     moving)
+            if early is not None:
+                return early
+            row_mid, tau = float(rel.row_ref), self.line_delay
+        return self._chain(pair, interval, rel, turned, row_mid, tau)
+
+    def _estimate_pair(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
+                       interval: float, idx: int, moving: bool):  # fmt: skip
+        """The pair estimator's motion, and the turning camera started from it: ``(rel,
+        turned, None)``, or ``(rel, None, PairStep)`` when the pair is held."""
         try:
             rel = estimate_relative_pose(
                 pts_prev, pts_curr, self.K, self.line_delay, model=self.model,
@@ -185,35 +222,52 @@ class PairwiseChain:
             )  # fmt: skip
         except ValueError as exc:  # e.g. all tracks collapsed onto one point
             self.hold()
-            return PairStep("held", f"estimation refused the pair: {exc}")
+            return None, None, PairStep("held", f"estimation refused the pair: {exc}")
         if not rel.ok:
             self.hold()
-            return PairStep("held", f"no pose for this pair: {rel.reason}",
-                            num_inliers=rel.num_inliers, inlier_ratio=rel.inlier_ratio,
-                            relative=rel)
+            return rel, None, PairStep("held", f"no pose for this pair: {rel.reason}",
+                                       num_inliers=rel.num_inliers,
+                                       inlier_ratio=rel.inlier_ratio, relative=rel)
         # the middle-row motion in units of |t| (the GS models' reference row is 0: nothing to
         # re-express, whatever the line delay)
-        row_mid, tau = float(rel.row_ref), self.line_delay
+        row_mid = float(rel.row_ref)
         R_m, t_m, (w_p, _, w_c, _) = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev,
-                                                 rel.w_curr, rel.v_curr, row_mid, tau)
+                                                 rel.w_curr, rel.v_curr, row_mid,
+                                                 self.line_delay)  # fmt: skip
         unit = float(np.linalg.norm(t_m))
         if not np.isfinite(unit) or unit < 1e-9:
             self.hold()
-            return PairStep("held", "no translation between the middle rows", relative=rel)
-        d_prev, d_curr = rel.depths_prev, rel.depths_curr  # in each point's own row camera
-        turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel, R_m, w_p, w_c,
-                                      interval)
+            return rel, None, PairStep("held", "no translation between the middle rows",
+                                       relative=rel)
+        turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel.inliers, R_m, w_p,
+                                      w_c, interval)
+        return rel, turned, None
+
+    def _chain(self, pair: TrackedPair, interval: float, rel: RelativePoseResult,
+               turned: _Turn | None, row_mid: float, tau: float) -> PairStep:
+        """Chain the pair's middle-row motion (the turning camera's, else the pair
+        estimator's) and its row-0 pose."""
         w_row0 = None  # the turning camera's row-0 turn rate
         if turned is not None:
-            R_m, t_m, par, (w_p, w_c) = turned
+            R_m, t_m, par, w_p, w_c = turned.R, turned.t, turned.parallax_px, turned.w_prev, \
+                turned.w_curr  # fmt: skip
             w_row0 = row0_turn_rate(R_m, interval, w_p, w_c)
             unit = 1.0
-            d_prev = d_curr = np.full(len(pair.ids), np.nan)  # no depths from no baseline
+            d_curr = np.full(len(pair.ids), np.nan)  # no depths from no baseline
             scale, scale_note = self._last_baseline, (
                 f"rotation of a turning camera ({par:.2f} px of translation parallax), the "
                 "last baseline")
+            # the current frame's own rate, for the next pair's turning camera to hold: the
+            # turn between the middle rows plus half the change of the fitted rates (two views
+            # see only that change; the fitted rate itself carries an unseen common part)
+            self._last_turn_rate = row0_turn_rate(R_m, interval, w_p, w_c, share=0.5)
         else:
-            scale, scale_note = self._relative_scale(pair.ids, rel, d_prev, unit)
+            R_m, t_m, _ = pose_at_row(rel.R, rel.t, rel.w_prev, rel.v_prev, rel.w_curr,
+                                      rel.v_curr, row_mid, tau)
+            unit = float(np.linalg.norm(t_m))
+            d_curr = rel.depths_curr  # in each point's own row camera
+            scale, scale_note = self._relative_scale(pair.ids, rel, rel.depths_prev, unit)
+            self._last_turn_rate = None
         T_curr_prev = np.eye(4)
         T_curr_prev[:3, :3], T_curr_prev[:3, 3] = R_m, t_m * scale
         M = pose_inverse(T_curr_prev)  # the current middle-row camera in the previous one
@@ -246,20 +300,48 @@ class PairwiseChain:
 
     # ------------------------------------------------------------------ internals
 
+    def _turning_first(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
+                       interval: float) -> tuple[RelativePoseResult, _Turn] | None:  # fmt: skip
+        """After a turning camera's pair, the next pair is first fitted as one, started from
+        the last motion (scaled to ``interval``) and the last fitted turn rate, on all its
+        tracks (Cauchy loss): under the parallax limit it is posed so, without the pair
+        estimator (a walk's first frames: about a third of the time of a pair estimate); else
+        None, and the pair estimator runs as before. Returns the pose as the pair estimator's
+        result would carry it (row 0, inliers within 3x the limit; no depths, no
+        covariance) and the turning camera."""
+        if self._last_turn_rate is None or self._last_motion is None:
+            return None
+        R_pred, _ = self._predicted_motion(interval)
+        row_mid = float(self.K[1, 2]) if self.model == "rs" else 0.0
+        w = self._last_turn_rate
+        turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid,
+                                      np.ones(len(pair.ids), bool), R_pred, w, w, interval)
+        if turned is None:
+            return None
+        limit = self.rotation_only_parallax_px * 0.5 * (self.K[0, 0] + self.K[1, 1]) / 1000.0
+        tau = self.line_delay if self.model == "rs" else 0.0
+        R0, t0, (w_p, _, w_c, _) = pose_from_row(turned.R, turned.t, turned.w_prev,
+                                                 np.zeros(3), turned.w_curr, np.zeros(3),
+                                                 row_mid, tau)  # fmt: skip
+        n = len(pair.ids)
+        rel = RelativePoseResult(
+            True, self.model, R0, t0 / max(float(np.linalg.norm(t0)), 1e-12),
+            turned.residual_px <= 3.0 * limit, w_p, np.zeros(3), w_c, np.zeros(3),
+            reason="a turning camera's pair: no pair estimate", row_ref=row_mid,
+            depths_prev=np.full(n, np.nan), depths_curr=np.full(n, np.nan))  # fmt: skip
+        return rel, turned
+
     def _turning_camera(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
-                        row_mid: float, rel: RelativePoseResult, R_m: np.ndarray,
-                        w_p: np.ndarray, w_c: np.ndarray, interval: float,
-                        ) -> tuple[np.ndarray, np.ndarray, float, tuple] | None:  # fmt: skip
-        """The middle-row motion ``(R, unit t)`` of a pair with under
-        ``rotation_only_parallax_px`` of translation parallax, from a turning camera's fit
-        started from the pair estimator's middle-row rotation ``R_m`` and turn rates ``w_p``,
-        ``w_c``, that parallax, and the turn rates the fit used and found ``(w_p, w)``; None
-        above it. The GS models' fit is a global shutter's
-        (every row at the frame's time)."""
+                        row_mid: float, inl: np.ndarray, R_m: np.ndarray, w_p: np.ndarray,
+                        w_c: np.ndarray, interval: float) -> _Turn | None:  # fmt: skip
+        """The middle-row motion of a pair with under ``rotation_only_parallax_px`` of
+        translation parallax, from a turning camera's fit on the tracks ``inl`` started from
+        the middle-row rotation ``R_m`` (``X_curr = R_m X_prev``) and turn rates ``w_p`` (the
+        previous frame's, held), ``w_c``; None above it. The GS models' fit is a global
+        shutter's (every row at the frame's time)."""
         focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
         tau = self.line_delay if self.model == "rs" else 0.0
         limit = self.rotation_only_parallax_px * focal / 1000.0
-        inl = rel.inliers
         if limit <= 0 or inl.sum() < 20:
             return None
         f, c = np.array([self.K[0, 0], self.K[1, 1]]), self.K[:2, 2]
@@ -291,7 +373,10 @@ class PairwiseChain:
         if not candidates:
             return None
         centre = max(candidates, key=lambda c: c[1])[0]
-        return fit.R.T, -fit.R.T @ centre, fit.parallax_px, (w_p, fit.w)
+        residual = np.full(len(inl), np.nan)
+        residual[inl] = fit.residual_px
+        return _Turn(fit.R.T, -fit.R.T @ centre, fit.parallax_px, np.asarray(w_p, float),
+                     fit.w, residual)
 
     def _predicted_motion(self, interval: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The last estimated middle-row motion, its rotation scaled to ``interval`` (constant
@@ -349,6 +434,7 @@ class PairwiseChain:
 
     def hold(self) -> None:
         """Keep the pose; the uncertainty grows; depths of the skipped pair are unknown."""
+        self._last_turn_rate = None
         grow = np.diag([DEFAULT_POSITION_VARIANCE] * 3 + [1e-3] * 3) * HOLD_COVARIANCE_GROWTH
         self.covariance = self.covariance + grow * max(self._last_baseline, 1e-3) ** 2
         self._prev_depths = {}
