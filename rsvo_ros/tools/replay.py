@@ -481,7 +481,40 @@ def accuracy(gt: dict[int, np.ndarray], est: dict[int, np.ndarray]) -> dict:
         rpe = metrics.RPE(rel, delta=1, delta_unit=metrics.Unit.frames, all_pairs=False)
         rpe.process_data((ref, aligned))
         out[name] = {k: float(v) for k, v in rpe.get_all_statistics().items()}
+    rate = scale_rate(ref.timestamps, ref.positions_xyz, traj.positions_xyz)
+    if rate is not None:
+        out["scale_rate"] = rate
     return out
+
+
+SCALE_WINDOW_S = 0.5  # the displacements scale_rate compares
+SCALE_MIN_STEP_M = 0.01  # windows in which the truth moved less are left out (a stop)
+
+
+def scale_rate(stamps_s: np.ndarray, gt_xyz: np.ndarray, est_xyz: np.ndarray) -> dict | None:
+    """How fast the estimate's scale changes (``accuracy.scale_drift`` compares the whole
+    run's Sim(3) scale with its start's): over windows of ``SCALE_WINDOW_S`` (one
+    starting every sixth of that), the ratio of the estimated to the true displacement, fitted
+    as ``c exp(b t)``; ``percent_per_s`` is ``100 (exp(b) - 1)`` (negative: the trajectory
+    shrinks as it goes). None with fewer than three windows (a short or stopped run)."""
+    t = np.asarray(stamps_s, float)
+    starts = np.arange(t[0], t[-1] - SCALE_WINDOW_S, SCALE_WINDOW_S / 6) if len(t) > 1 else []
+    ts, logs = [], []
+    for t0 in starts:
+        i = int(np.searchsorted(t, t0))
+        j = int(np.searchsorted(t, t0 + SCALE_WINDOW_S))
+        if j >= len(t) or j <= i:
+            continue
+        g = float(np.linalg.norm(gt_xyz[j] - gt_xyz[i]))
+        e = float(np.linalg.norm(est_xyz[j] - est_xyz[i]))
+        if g < SCALE_MIN_STEP_M or not e > 0:
+            continue
+        ts.append(0.5 * (t[i] + t[j]))
+        logs.append(np.log(e / g))
+    if len(ts) < 3:
+        return None
+    b = float(np.polyfit(ts, logs, 1)[0])
+    return {"percent_per_s": 100.0 * float(np.expm1(b)), "windows": len(ts)}
 
 
 def plot_trajectory(path: Path, est: dict, gt: dict, frames: list, model: str) -> None:
@@ -669,6 +702,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{s['frames_skipped']} skipped) at {s['frames_per_second']:.1f} frames/s")
     if acc:
         line += f"; ATE {acc['ate_m']['rmse']:.3f} m RMSE after Sim(3)"
+        if "scale_rate" in acc:
+            line += f", scale {acc['scale_rate']['percent_per_s']:+.1f} % per s"
     print(line)
     if "line_delay_auto" in s:
         print(f"rsvo_replay: line delay auto: {_describe_estimate(s['line_delay_auto'])}")

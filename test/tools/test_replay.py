@@ -14,6 +14,7 @@ from rosbags.rosbag2 import Reader
 from rsvo_ros.ros import bagio
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import main as replay_main
+from rsvo_ros.tools.replay import scale_rate
 from rsvo_ros.tools.synth_bag import write_bag
 
 
@@ -253,6 +254,24 @@ def test_replay_reports_the_scale_drift(walk_bag, tmp_path):
     assert drift["first_frames"] == 60
     assert np.isclose(drift["ratio"], acc["sim3_scale"] / drift["sim3_scale_first"])
     assert 0.7 < drift["ratio"] < 1.4
+    rate = acc["scale_rate"]
+    assert rate["windows"] > 20 and abs(rate["percent_per_s"]) < 30
+
+
+def test_scale_rate_measures_a_shrinking_trajectory_and_skips_stops():
+    t = np.arange(150) / 30.0
+    gt = np.column_stack([8.0 * t, np.sin(t), np.zeros_like(t)])
+    # positions whose local scale falls by 3 % per second: p(t) = integral of exp(b t) v dt
+    b = np.log(0.97)
+    est = np.column_stack([8.0 * np.expm1(b * t) / b, np.zeros_like(t), np.zeros_like(t)])
+    est[:, 1] = np.cumsum(np.r_[0.0, np.diff(np.sin(t)) * np.exp(b * t[1:])])
+    rate = scale_rate(t, gt, 2.0 * est)  # any overall scale
+    assert rate is not None and np.isclose(rate["percent_per_s"], -3.0, atol=0.1)
+    assert np.isclose(scale_rate(t, gt, gt)["percent_per_s"], 0.0, atol=1e-9)
+    # a camera standing still has no displacement to compare: no windows, no figure
+    still = np.zeros_like(gt)
+    assert scale_rate(t, still, still + 0.001) is None
+    assert scale_rate(t[:10], gt[:10], gt[:10]) is None  # shorter than three windows
 
 
 def test_rsvo_calibrate_writes_a_parameter_file_the_node_can_load(walk_bag, tmp_path, capsys):
