@@ -198,14 +198,12 @@ class PairwiseChain:
         quick = self._turning_first(pts_prev, pts_curr, pair, interval)
         if quick is not None:
             rel, turned = quick
-            row_mid, tau = float(rel.row_ref), self.line_delay
         else:
             rel, turned, early = self._estimate_pair(pts_prev, pts_curr, pair, interval, idx,
                                                      moving)
             if early is not None:
                 return early
-            row_mid, tau = float(rel.row_ref), self.line_delay
-        return self._chain(pair, interval, rel, turned, row_mid, tau)
+        return self._chain(pair, interval, rel, turned, float(rel.row_ref), self.line_delay)
 
     def _estimate_pair(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
                        interval: float, idx: int, moving: bool):  # fmt: skip
@@ -303,8 +301,10 @@ class PairwiseChain:
     def _turning_first(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
                        interval: float) -> tuple[RelativePoseResult, _Turn] | None:  # fmt: skip
         """After a turning camera's pair, the next pair is first fitted as one, started from
-        the last motion (scaled to ``interval``) and the last fitted turn rate, on all its
-        tracks (Cauchy loss): under the parallax limit it is posed so, without the pair
+        the last motion (scaled to ``interval``) with the previous frame's own turn rate held
+        (``_last_turn_rate``: the turn between the middle rows plus half the change of the
+        fitted rates; the last fitted rate itself was worse, README), on all its tracks
+        (Cauchy loss): under the parallax limit it is posed so, without the pair
         estimator (a walk's first frames: about a third of the time of a pair estimate); else
         None, and the pair estimator runs as before. Returns the pose as the pair estimator's
         result would carry it (row 0, inliers within 3x the limit; no depths, no
