@@ -92,7 +92,8 @@ def run_case(out: Path, name: str, config: dict, columns: list[str]) -> dict:
                     "sim3_scale": acc["sim3_scale"], "rpe_rot_deg": acc["rpe_rot_deg"]["rmse"],
                     "with_pose": s["frames_posed"] / s["frames_in"],
                     "held": s["frames_held"], "fps": s["frames_per_second"],
-                    "keyframe_w_rel_error": s.get("keyframes", {}).get("w_rel_error_median")}
+                    "keyframe_w_rel_error": s.get("keyframes", {}).get("w_rel_error_median"),
+                    "scale_rate_percent_per_s": acc.get("scale_rate", {}).get("percent_per_s")}
         if backend == "window":
             row[col].update(readout_w_errors(renderer, s.get("keyframes", {})))
     return row
@@ -164,12 +165,21 @@ def format_table(title: str, rows: list, columns: list[str]) -> str:
         fl = [r[cv]["readout_w_vs_instantaneous"] for r in sel
               if r[cv].get("readout_w_vs_instantaneous") is not None]
         acc = ""
+        rates = {c: [r[c]["scale_rate_percent_per_s"] for r in sel
+                     if r[c].get("scale_rate_percent_per_s") is not None]
+                 for c in ("RS window", "RS pairwise")}  # fmt: skip
+        win = rates["RS window"]
+        if win:
+            acc += (f"; scale change (median, % per s) RS window {np.median(win):+.1f} "
+                    f"({sum(x < 0 for x in win)} of {len(win)} shrinking)")
+            if rates["RS pairwise"]:
+                acc += f", RS pairwise {np.median(rates['RS pairwise']):+.1f}"
         if CONSTANT in columns:
             ratio = _geo([r[CONSTANT]["ate_m"] / r["RS window"]["ate_m"] for r in sel])
             rpe_cv = _geo([r[CONSTANT]["rpe_rot_deg"] / r["RS window"]["rpe_rot_deg"]
                            for r in sel])
-            acc = (f"; constant velocity within a frame / with the angular acceleration: ATE "
-                   f"{ratio:.2f}, RPE rotation {rpe_cv:.2f}")
+            acc += (f"; constant velocity within a frame / with the angular acceleration: ATE "
+                    f"{ratio:.2f}, RPE rotation {rpe_cv:.2f}")
         lines.append(f"- {g} ({len(sel)}): RS window / GS window geometric mean {w_gs:.2f}, "
                      f"RS window / RS pairwise {w_pw:.2f}; RS window worst {pct:.1f} % of the "
                      f"path, RPE rotation up to {rpe:.2f} deg per frame"
