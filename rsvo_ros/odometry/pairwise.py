@@ -203,7 +203,7 @@ class PairwiseChain:
                                                      moving)
             if early is not None:
                 return early
-        return self._chain(pair, interval, rel, turned, float(rel.row_ref), self.line_delay)
+        return self._chain(pair, interval, rel, turned)
 
     def _estimate_pair(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
                        interval: float, idx: int, moving: bool):  # fmt: skip
@@ -242,9 +242,10 @@ class PairwiseChain:
         return rel, turned, None
 
     def _chain(self, pair: TrackedPair, interval: float, rel: RelativePoseResult,
-               turned: _Turn | None, row_mid: float, tau: float) -> PairStep:
+               turned: _Turn | None) -> PairStep:
         """Chain the pair's middle-row motion (the turning camera's, else the pair
         estimator's) and its row-0 pose."""
+        row_mid, tau = float(rel.row_ref), self.line_delay
         w_row0 = None  # the turning camera's row-0 turn rate
         if turned is not None:
             R_m, t_m, par, w_p, w_c = turned.R, turned.t, turned.parallax_px, turned.w_prev, \
@@ -318,8 +319,7 @@ class PairwiseChain:
                                       np.ones(len(pair.ids), bool), R_pred, w, w, interval)
         if turned is None:
             return None
-        limit = self.rotation_only_parallax_px * 0.5 * (self.K[0, 0] + self.K[1, 1]) / 1000.0
-        tau = self.line_delay if self.model == "rs" else 0.0
+        limit, tau = self._parallax_limit_px(), self._fit_line_delay()
         R0, t0, (w_p, _, w_c, _) = pose_from_row(turned.R, turned.t, turned.w_prev,
                                                  np.zeros(3), turned.w_curr, np.zeros(3),
                                                  row_mid, tau)  # fmt: skip
@@ -331,6 +331,15 @@ class PairwiseChain:
             depths_prev=np.full(n, np.nan), depths_curr=np.full(n, np.nan))  # fmt: skip
         return rel, turned
 
+    def _parallax_limit_px(self) -> float:
+        """``rotation_only_parallax_px`` (given at 1000 px focal) at this camera's focal."""
+        return self.rotation_only_parallax_px * 0.5 * (self.K[0, 0] + self.K[1, 1]) / 1000.0
+
+    def _fit_line_delay(self) -> float:
+        """The line delay of the turning-camera fits: 0 for the GS models (every row at the
+        frame's time), whatever the camera's."""
+        return self.line_delay if self.model == "rs" else 0.0
+
     def _turning_camera(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
                         row_mid: float, inl: np.ndarray, R_m: np.ndarray, w_p: np.ndarray,
                         w_c: np.ndarray, interval: float) -> _Turn | None:  # fmt: skip
@@ -340,8 +349,7 @@ class PairwiseChain:
         previous frame's, held), ``w_c``; None above it. The GS models' fit is a global
         shutter's (every row at the frame's time)."""
         focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
-        tau = self.line_delay if self.model == "rs" else 0.0
-        limit = self.rotation_only_parallax_px * focal / 1000.0
+        limit, tau = self._parallax_limit_px(), self._fit_line_delay()
         if limit <= 0 or inl.sum() < 20:
             return None
         f, c = np.array([self.K[0, 0], self.K[1, 1]]), self.K[:2, 2]
