@@ -36,7 +36,14 @@ def test_real_pairs_report_every_method_and_a_picture(real_report):
     report, out = real_report
     s = report["summary"]
     assert set(s) == set(realpairs.METHODS)
-    assert all(v["pairs"] == 4 and v["failed"] == 0 for v in s.values())
+    assert all(v["pairs"] == 4 for v in s.values())
+    # every method poses every pair, except the paper's 8-point MVO baseline, which may fail on
+    # these forward-motion pairs (since the refined tracks, 2026-11-25: pair_1, 4 inliers); a
+    # failure is reported with its reason, never as a pose
+    assert all(v["failed"] == 0 for m, v in s.items() if m != "ours mvo")
+    assert s["ours mvo"]["failed"] <= 1
+    for row in report["results"]:
+        assert row["ok"] or (row["reason"] and row["unroll_px_median"] is None)
     # the GS twins' reference agrees with OpenCV's best GS pipeline on the RS tracks
     assert s["OpenCV USAC_MAGSAC (GS)"]["rot_err_deg_mean"] < 0.2
     # our GS model is that pipeline
