@@ -22,6 +22,13 @@ DEFAULT_MAX_FEATURES = 500  # paper, Sec. 7.1: "limited up to 500 with a bucketi
 # backend's vehicles shrank by about 2.4 %/s. Refining with an 11-px window at full resolution
 # keeps the pyramid's reach and removes most of it (README, "The vehicles' scale shrinks")
 REFINE_WINDOW_PX = 11
+MAX_REFINE_WINDOW_PX = 51
+
+
+def refine_window_or_auto(px: int) -> int | None:
+    """A command line's or a ROS parameter's refinement window (-1: the default choice) as
+    :attr:`TrackerOptions.refine_window_px`."""
+    return None if px == -1 else px
 
 
 @dataclass
@@ -65,6 +72,9 @@ class FeatureTracker:
     def __init__(self, options: TrackerOptions | None = None):
         self.options = options or TrackerOptions()
         refine = self.options.refine_window_px
+        if refine is not None and refine != 0 and not 3 <= refine <= MAX_REFINE_WINDOW_PX:
+            raise ValueError("refine_window_px must be None (the default), 0 (off) or "
+                             f"3-{MAX_REFINE_WINDOW_PX} px, got {refine}")
         self._refine_px = REFINE_WINDOW_PX if refine is None else int(refine)
         self._prev_img: np.ndarray | None = None
         self._pts = np.zeros((0, 2), np.float32)
@@ -80,6 +90,11 @@ class FeatureTracker:
         self._ids = np.zeros(0, np.int64)
         self._flow = np.zeros((0, 2), np.float32)
         self._flow_dt = self._stamp_ns = None
+
+    @property
+    def refine_window_px(self) -> int:
+        """The refinement window in use (px; 0: no refinement)."""
+        return self._refine_px
 
     @property
     def num_tracks(self) -> int:

@@ -31,7 +31,7 @@ from std_srvs.srv import Trigger
 
 from rsvo_ros.core.geometry import pose_inverse
 from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions, warm_up
-from rsvo_ros.odometry.tracker import TrackerOptions
+from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
 from rsvo_ros.ros.convert import (
     COVARIANCE_UNKNOWN,
     POINT_FIELD_FLOAT32,
@@ -209,7 +209,10 @@ class RsvoNode(Node):
             return
         K, D, _, _ = self._camera
         opts = PipelineOptions(model=self.p["model"], backend=self.p["backend"],
-                               tracker=TrackerOptions(max_features=int(self.p["max_features"])),
+                               tracker=TrackerOptions(
+                                   max_features=int(self.p["max_features"]),
+                                   refine_window_px=refine_window_or_auto(
+                                       int(self.p["klt_refine_window_px"]))),
                                motion_prior=bool(self.p["motion_prior"]))
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])

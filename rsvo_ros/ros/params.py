@@ -73,6 +73,11 @@ PARAMETERS = {
         "constant velocity within a frame (smooth vehicle motion: ATE up to 6 % lower, "
         "per-frame rotation error 14-27 % higher; README).", 0.0, 10000.0)),
     "max_features": (500, _int("Tracked corners (paper: 500).", 20, 5000)),
+    "klt_refine_window_px": (-1, _int(
+        "KLT: after the pyramid's 21-px window, polish each track at full resolution with a "
+        "window of this many px (the window backend's vehicles otherwise shrink by about 2 %/s; "
+        "README). -1: the backend's choice (11 for window, 0 for pairwise); 0: off; else 3-51.",
+        -1, 51)),
     "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
     "motion_prior": (True, _bool(
         "RS: centre the velocity prior on the constant velocity of each frame pair's motion "
@@ -148,6 +153,9 @@ def read_config(values: dict) -> NodeConfig:
                          f"got {p['line_delay_mode']!r}")  # fmt: skip
     if p["line_delay_mode"] == "auto" and (p["model"] != "rs" or p["backend"] != "window"):
         raise ValueError("parameter line_delay_mode auto needs model rs and backend window")
+    if p["klt_refine_window_px"] in (1, 2):
+        raise ValueError("parameter klt_refine_window_px must be -1 (the backend's choice), 0 "
+                         f"(off) or 3-51 px, got {p['klt_refine_window_px']}")  # fmt: skip
     if p["lost_odometry"] not in LOST_CHOICES:
         raise ValueError(f"parameter lost_odometry must be one of {LOST_CHOICES}, "
                          f"got {p['lost_odometry']!r}")  # fmt: skip

@@ -29,7 +29,7 @@ from rsvo_ros.odometry.pipeline import (
     PipelineOptions,
     warm_up,
 )
-from rsvo_ros.odometry.tracker import TrackerOptions
+from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
 from rsvo_ros.odometry.window import WindowOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import (
@@ -81,6 +81,7 @@ class ReplayConfig:
     progress: bool = True
     options: PipelineOptions = field(default_factory=PipelineOptions)
     max_frames: int | None = None  # stop after this many images (None: the whole bag)
+    refine_window_px: int | None = None  # TrackerOptions.refine_window_px (None: by backend)
 
 
 def _pose_line(stamp: int, T: np.ndarray) -> str:
@@ -199,7 +200,8 @@ def replay(cfg: ReplayConfig) -> dict:
         n_images = min(n_images, cfg.max_frames)
     options = cfg.options
     options.model = cfg.model
-    options.tracker = TrackerOptions(max_features=cfg.max_features)
+    options.tracker = TrackerOptions(max_features=cfg.max_features,
+                                     refine_window_px=cfg.refine_window_px)
 
     skipped: Counter = Counter()
     statuses: Counter = Counter()
@@ -352,6 +354,9 @@ def replay(cfg: ReplayConfig) -> dict:
         "rotation_only_parallax_px": options.rotation_only_parallax_px,
         "async_mapping": options.window.async_mapping,
         "angular_acceleration_std": options.window.map.prior_acc_rad_s2,
+        # the tracker's small-window refinement in use (px; 0: off)
+        "klt_refine_window_px": (pipeline.tracker.refine_window_px if pipeline is not None
+                                 else None),
         # numeric WindowOptions fields away from their defaults (--window-option)
         "window_options_changed": changed_window_options(options.window),
         # the line delay used at the end (line_delay auto: the estimate, see line_delay_auto)
@@ -651,6 +656,10 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="NAME=VALUE",
                    help="window backend: set a numeric WindowOptions field, e.g. "
                         "init_max_rotation_std_deg=0 (repeatable; for A/B runs)")
+    p.add_argument("--klt-refine-window", type=int, default=-1, metavar="PX",
+                   help="KLT: polish each track at full resolution with a PX window after the "
+                        "pyramid's 21-px one (-1, default: 11 for the window backend, off for "
+                        "the pairwise one; 0: off; else 3-51)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -672,6 +681,9 @@ def main(argv: list[str] | None = None) -> int:
         print("rsvo_replay: --angular-acceleration must be a std >= 0 (rad/s^2)",
               file=sys.stderr)
         return EXIT_USAGE
+    if args.klt_refine_window not in (-1, 0) and not 3 <= args.klt_refine_window <= 51:
+        print("rsvo_replay: --klt-refine-window must be -1, 0 or 3-51 px", file=sys.stderr)
+        return EXIT_USAGE
     auto = args.line_delay == "auto"
     if auto and (args.model != "rs" or args.backend != "window"):
         print("rsvo_replay: --line-delay auto needs --model rs and --backend window",
@@ -687,7 +699,8 @@ def main(argv: list[str] | None = None) -> int:
                        args.camera_info_topic, args.ground_truth_topic,
                        None if auto else args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
-                       options, args.max_frames)  # fmt: skip
+                       options, args.max_frames,
+                       refine_window_or_auto(args.klt_refine_window))  # fmt: skip
     try:
         s = replay(cfg)
     except (ValueError, FileExistsError) as exc:

@@ -160,6 +160,9 @@ def test_a_refinement_that_would_jump_keeps_the_pyramids_position(textured):
     assert tracks[0].keys() == tracks[8].keys()  # the same tracks survive
     moved = np.array([np.linalg.norm(tracks[8][i] - tracks[0][i]) for i in tracks[0]])
     assert moved.max() < 1.0 and np.median(moved) < 0.1
+    for bad in (1, 2, 99, -1):
+        with pytest.raises(ValueError, match="refine_window_px"):
+            FeatureTracker(TrackerOptions(refine_window_px=bad))
 
 
 @pytest.mark.parametrize("backend", ["window", "pairwise"])

@@ -325,6 +325,25 @@ def test_angular_acceleration_flag_reaches_the_window_and_is_checked(vehicle_bag
     assert "--angular-acceleration" in capsys.readouterr().err
 
 
+def test_klt_refine_window_flag_reaches_the_tracker_and_is_checked(vehicle_bag, tmp_path,
+                                                                    capsys):
+    runs = {"default": [], "off": ["--klt-refine-window", "0"],
+            "pairwise": ["--backend", "pairwise"], "seven": ["--klt-refine-window", "7"]}
+    used = {}
+    for name, extra in runs.items():
+        assert replay_main([str(vehicle_bag), "--output", str(tmp_path / name), "--max-frames",
+                            "4", "--no-progress", *extra]) == 0
+        used[name] = json.loads((tmp_path / name / "summary.json").read_text())[
+            "klt_refine_window_px"]
+    assert used == {"default": 11, "off": 0, "pairwise": 0, "seven": 7}
+    traj = {n: (tmp_path / n / "trajectory.tum").read_text() for n in ("default", "off")}
+    assert traj["default"] != traj["off"]  # the refinement moved the tracks
+    for bad in ("2", "99", "-3"):
+        assert replay_main([str(vehicle_bag), "--output", str(tmp_path / f"bad{bad}"),
+                            "--klt-refine-window", bad, "--no-progress"]) == 2
+        assert "--klt-refine-window" in capsys.readouterr().err
+
+
 def test_window_option_flag_sets_a_field_records_it_and_is_checked(vehicle_bag, tmp_path,
                                                                    capsys):
     out = tmp_path / "opt"
