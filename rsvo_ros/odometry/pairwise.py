@@ -74,6 +74,12 @@ ROTATION_ONLY_PARALLAX_PX = 3.0
 # under the limit had 1.1-1.7x; a vehicle's 2-3x is its translation, and the second fit costs
 # about 3 ms)
 ACCELERATION_FIT_UP_TO = 2.0
+# A pair estimate whose rotation std (its covariance) is over this many degrees is replaced by
+# a turning camera's fit at any translation parallax: the first pairs of a shaken RS vehicle
+# (12-30 px of parallax, over the turning camera's limit) had 2-7 deg of rotation error with
+# a 3.5 deg std, where a rotation-only fit is within 1.6 deg (README, "Where the vehicles' ATE
+# now comes from"). 0: never
+UNCERTAIN_PAIR_ROTATION_DEG = 1.0
 # row0_turn_rate's share of the change of the fitted rates. Measured on rendered walks with
 # 8-15 Hz shake (README, "Row 0 of a turning camera"): with the renderer's exact middle-row poses
 # and rates the row-0 rotations were 0.77 deg per frame off for an interpolation between the
@@ -239,6 +245,12 @@ class PairwiseChain:
                                        relative=rel)
         turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel.inliers, R_m, w_p,
                                       w_c, interval)
+        if (turned is None and UNCERTAIN_PAIR_ROTATION_DEG > 0 and self.model == "rs"
+                and _rotation_std_deg(rel) > UNCERTAIN_PAIR_ROTATION_DEG):
+            # the velocities and the rotation traded off: a turning camera's rotation instead
+            # (its direction given that rotation, the scale from the last baseline)
+            turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel.inliers, R_m,
+                                          w_p, w_c, interval, max_parallax_px=np.inf)
         return rel, turned, None
 
     def _chain(self, pair: TrackedPair, interval: float, rel: RelativePoseResult,
@@ -342,14 +354,18 @@ class PairwiseChain:
 
     def _turning_camera(self, pts_prev: np.ndarray, pts_curr: np.ndarray, pair: TrackedPair,
                         row_mid: float, inl: np.ndarray, R_m: np.ndarray, w_p: np.ndarray,
-                        w_c: np.ndarray, interval: float) -> _Turn | None:  # fmt: skip
+                        w_c: np.ndarray, interval: float,
+                        max_parallax_px: float | None = None) -> _Turn | None:  # fmt: skip
         """The middle-row motion of a pair with under ``rotation_only_parallax_px`` of
         translation parallax, from a turning camera's fit on the tracks ``inl`` started from
         the middle-row rotation ``R_m`` (``X_curr = R_m X_prev``) and turn rates ``w_p`` (the
-        previous frame's, held), ``w_c``; None above it. The GS models' fit is a global
-        shutter's (every row at the frame's time)."""
+        previous frame's, held), ``w_c``; None above it (``max_parallax_px``: another limit,
+        px at this camera's focal). The GS models' fit is a global shutter's (every row at the
+        frame's time)."""
         focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
         limit, tau = self._parallax_limit_px(), self._fit_line_delay()
+        if max_parallax_px is not None:
+            limit = max_parallax_px
         if limit <= 0 or inl.sum() < 20:
             return None
         f, c = np.array([self.K[0, 0], self.K[1, 1]]), self.K[:2, 2]
@@ -446,3 +462,9 @@ class PairwiseChain:
         grow = np.diag([DEFAULT_POSITION_VARIANCE] * 3 + [1e-3] * 3) * HOLD_COVARIANCE_GROWTH
         self.covariance = self.covariance + grow * max(self._last_baseline, 1e-3) ** 2
         self._prev_depths = {}
+
+
+def _rotation_std_deg(rel: RelativePoseResult) -> float:
+    """The pair estimate's rotation std (deg; inf without a usable covariance)."""
+    var = float(np.trace(rel.covariance[:3, :3]))
+    return float(np.degrees(np.sqrt(var))) if np.isfinite(var) and var >= 0 else np.inf
