@@ -363,9 +363,8 @@ class PairwiseChain:
         px at this camera's focal). The GS models' fit is a global shutter's (every row at the
         frame's time)."""
         focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
-        limit, tau = self._parallax_limit_px(), self._fit_line_delay()
-        if max_parallax_px is not None:
-            limit = max_parallax_px
+        tau = self._fit_line_delay()
+        limit = self._parallax_limit_px() if max_parallax_px is None else max_parallax_px
         if limit <= 0 or inl.sum() < 20:
             return None
         f, c = np.array([self.K[0, 0], self.K[1, 1]]), self.K[:2, 2]

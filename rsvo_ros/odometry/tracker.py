@@ -25,10 +25,22 @@ REFINE_WINDOW_PX = 11
 MAX_REFINE_WINDOW_PX = 51
 
 
-def refine_window_or_auto(px: int) -> int | None:
-    """A command line's or a ROS parameter's refinement window (-1: the default choice) as
-    :attr:`TrackerOptions.refine_window_px`."""
-    return None if px == -1 else px
+def check_refine_window(px: int | None, name: str = "refine_window_px",
+                        default: str = "None") -> None:
+    """``ValueError`` unless ``px`` is a :attr:`TrackerOptions.refine_window_px`: None (the
+    default choice), 0 (off) or 3-``MAX_REFINE_WINDOW_PX``; the message names the setting
+    ``name`` and spells the default choice ``default``."""
+    if px is not None and px != 0 and not 3 <= px <= MAX_REFINE_WINDOW_PX:
+        raise ValueError(f"{name} must be {default} (the default choice), 0 (off) or "
+                         f"3-{MAX_REFINE_WINDOW_PX} px, got {px}")
+
+
+def refine_window_or_auto(px: int, name: str) -> int | None:
+    """A command line's or a ROS parameter's (``name``) refinement window (-1: the default
+    choice) as :attr:`TrackerOptions.refine_window_px`; ``ValueError`` naming it otherwise."""
+    window = None if px == -1 else px
+    check_refine_window(window, name, "-1")
+    return window
 
 
 @dataclass
@@ -72,9 +84,7 @@ class FeatureTracker:
     def __init__(self, options: TrackerOptions | None = None):
         self.options = options or TrackerOptions()
         refine = self.options.refine_window_px
-        if refine is not None and refine != 0 and not 3 <= refine <= MAX_REFINE_WINDOW_PX:
-            raise ValueError("refine_window_px must be None (the default), 0 (off) or "
-                             f"3-{MAX_REFINE_WINDOW_PX} px, got {refine}")
+        check_refine_window(refine)
         self._refine_px = REFINE_WINDOW_PX if refine is None else int(refine)
         self._prev_img: np.ndarray | None = None
         self._pts = np.zeros((0, 2), np.float32)
@@ -146,15 +156,13 @@ class FeatureTracker:
             good &= p1f[:, 1] <= h - 1
             if self._refine_px and good.any():
                 p1r, st3, _ = cv2.calcOpticalFlowPyrLK(
-                    self._prev_img, img, p0[good], p1[good].copy(),
+                    self._prev_img, img, p0[good], p1[good],
                     winSize=(self._refine_px,) * 2, maxLevel=0, criteria=lk["criteria"],
                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
                 p1r = p1r.reshape(-1, 2)
                 ok = (st3.ravel() == 1) & np.isfinite(p1r).all(axis=1)
                 ok &= np.linalg.norm(p1r - p1f[good], axis=1) < o.fb_threshold_px
-                idx = np.flatnonzero(good)[ok]
-                p1f = p1f.copy()
-                p1f[idx] = p1r[ok]
+                p1f[np.flatnonzero(good)[ok]] = p1r[ok]
             pair = TrackedPair(self._pts[good].astype(float), p1f[good].astype(float),
                                self._ids[good].copy())  # fmt: skip
             self._flow = (p1f[good] - self._pts[good]).astype(np.float32)

@@ -212,7 +212,8 @@ class RsvoNode(Node):
                                tracker=TrackerOptions(
                                    max_features=int(self.p["max_features"]),
                                    refine_window_px=refine_window_or_auto(
-                                       int(self.p["klt_refine_window_px"]))),
+                                       int(self.p["klt_refine_window_px"]),
+                                       "parameter klt_refine_window_px")),
                                motion_prior=bool(self.p["motion_prior"]))
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])

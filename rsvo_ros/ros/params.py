@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from rsvo_ros.odometry.local_map import ACCELERATION_STD_RAD_S2
 from rsvo_ros.odometry.pipeline import BACKENDS
+from rsvo_ros.odometry.tracker import MAX_REFINE_WINDOW_PX, refine_window_or_auto
 from rsvo_ros.twoview.estimator import MODELS
 
 QOS_CHOICES = ("auto", "reliable", "best_effort")
@@ -76,8 +77,8 @@ PARAMETERS = {
     "klt_refine_window_px": (-1, _int(
         "KLT: after the pyramid's 21-px window, polish each track at full resolution with a "
         "window of this many px (the window backend's vehicles otherwise shrink by about 2 %/s; "
-        "README). -1: the backend's choice (11 for window, 0 for pairwise); 0: off; else 3-51.",
-        -1, 51)),
+        "README). -1: the backend's choice (11 for window, 0 for pairwise); 0: off; else "
+        f"3-{MAX_REFINE_WINDOW_PX}.", -1, MAX_REFINE_WINDOW_PX)),
     "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
     "motion_prior": (True, _bool(
         "RS: centre the velocity prior on the constant velocity of each frame pair's motion "
@@ -153,9 +154,7 @@ def read_config(values: dict) -> NodeConfig:
                          f"got {p['line_delay_mode']!r}")  # fmt: skip
     if p["line_delay_mode"] == "auto" and (p["model"] != "rs" or p["backend"] != "window"):
         raise ValueError("parameter line_delay_mode auto needs model rs and backend window")
-    if p["klt_refine_window_px"] in (1, 2):
-        raise ValueError("parameter klt_refine_window_px must be -1 (the backend's choice), 0 "
-                         f"(off) or 3-51 px, got {p['klt_refine_window_px']}")  # fmt: skip
+    refine_window_or_auto(p["klt_refine_window_px"], "parameter klt_refine_window_px")
     if p["lost_odometry"] not in LOST_CHOICES:
         raise ValueError(f"parameter lost_odometry must be one of {LOST_CHOICES}, "
                          f"got {p['lost_odometry']!r}")  # fmt: skip

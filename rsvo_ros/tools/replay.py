@@ -29,7 +29,11 @@ from rsvo_ros.odometry.pipeline import (
     PipelineOptions,
     warm_up,
 )
-from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
+from rsvo_ros.odometry.tracker import (
+    MAX_REFINE_WINDOW_PX,
+    TrackerOptions,
+    refine_window_or_auto,
+)
 from rsvo_ros.odometry.window import WindowOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import (
@@ -659,7 +663,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--klt-refine-window", type=int, default=-1, metavar="PX",
                    help="KLT: polish each track at full resolution with a PX window after the "
                         "pyramid's 21-px one (-1, default: 11 for the window backend, off for "
-                        "the pairwise one; 0: off; else 3-51)")
+                        f"the pairwise one; 0: off; else 3-{MAX_REFINE_WINDOW_PX})")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -681,8 +685,10 @@ def main(argv: list[str] | None = None) -> int:
         print("rsvo_replay: --angular-acceleration must be a std >= 0 (rad/s^2)",
               file=sys.stderr)
         return EXIT_USAGE
-    if args.klt_refine_window not in (-1, 0) and not 3 <= args.klt_refine_window <= 51:
-        print("rsvo_replay: --klt-refine-window must be -1, 0 or 3-51 px", file=sys.stderr)
+    try:
+        refine_window = refine_window_or_auto(args.klt_refine_window, "--klt-refine-window")
+    except ValueError as exc:
+        print(f"rsvo_replay: {exc}", file=sys.stderr)
         return EXIT_USAGE
     auto = args.line_delay == "auto"
     if auto and (args.model != "rs" or args.backend != "window"):
@@ -699,8 +705,7 @@ def main(argv: list[str] | None = None) -> int:
                        args.camera_info_topic, args.ground_truth_topic,
                        None if auto else args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
-                       options, args.max_frames,
-                       refine_window_or_auto(args.klt_refine_window))  # fmt: skip
+                       options, args.max_frames, refine_window)  # fmt: skip
     try:
         s = replay(cfg)
     except (ValueError, FileExistsError) as exc:
