@@ -78,8 +78,22 @@ ACCELERATION_FIT_UP_TO = 2.0
 # a turning camera's fit at any translation parallax: the first pairs of a shaken RS vehicle
 # (12-30 px of parallax, over the turning camera's limit) had 2-7 deg of rotation error with
 # a 3.5 deg std, where a rotation-only fit is within 1.6 deg (README, "Where the vehicles' ATE
-# now comes from"). 0: never
-UNCERTAIN_PAIR_ROTATION_DEG = 1.0
+# now comes from"). Such a pair's scale is the last baseline (no depths), so a chain that runs
+# for the whole sequence (the pairwise backend) takes fewer of them than the window's
+# bootstrap, whose map measures the scale after 2-6 frames. Chosen among 1.0, 0.5, 0.3, 0.2
+# and 0.01 on the vehicle table and the fresh vehicles (33 bags; geometric means against the
+# previous rule, 1.0 with the direction from the small-residual tracks only): window ATE
+# 0.88 / 0.84 / 0.85 / 0.88 and RPE 0.83 / 0.73 / 0.71 / 0.66 for 0.5 / 0.3 / 0.2 / 0.01 (bags
+# worse by over 20 %: 0 / 1 / 1 / 5); pairwise backend ATE 1.03 / 1.19 (vehicle table) and
+# 0.86 / 0.94 (fresh) for 0.5 / 0.3, RPE 0.85 / 0.77 and 0.76 / 0.67. Then checked on the
+# held-out vehicles. 0: never
+UNCERTAIN_PAIR_ROTATION_DEG = 0.5  # the pairwise backend
+# ... and where the direction given that rotation puts under this share of the tracks in front
+# of both cameras, the chain keeps the last pair's direction. On the 33 vehicles' 34 uncertain
+# pairs the direction was 1-28 deg off (ground truth) at a share of 0.85-1.0, 36-122 deg at
+# 0.58-0.78 and 91 deg once at 0.82, 3 deg once at 0.74 (README)
+UNCERTAIN_MIN_FRONT = 0.8
+BOOTSTRAP_UNCERTAIN_ROTATION_DEG = 0.3  # the window backend's chain (until a map; after a loss)
 # row0_turn_rate's share of the change of the fitted rates. Measured on rendered walks with
 # 8-15 Hz shake (README, "Row 0 of a turning camera"): with the renderer's exact middle-row poses
 # and rates the row-0 rotations were 0.77 deg per frame off for an interpolation between the
@@ -88,6 +102,17 @@ UNCERTAIN_PAIR_ROTATION_DEG = 1.0
 # 1/2 on the tuning walks; 0.15: 0.99x, 0.4: 0.89x, 0.7: 1.33x)
 ROW0_RATE_CHANGE_SHARE = 0.3
 DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
+
+
+def uncertain_rotation_or_auto(deg: float, name: str) -> float | None:
+    """A user's uncertain-rotation setting: -1 is the backend's choice (None), else a finite
+    number of degrees >= 0; ``ValueError`` naming the setting otherwise."""
+    if deg == -1:
+        return None
+    if not (np.isfinite(deg) and deg >= 0):
+        raise ValueError(f"{name} must be -1 (the backend's choice) or a number of degrees "
+                         f">= 0, got {deg}")  # fmt: skip
+    return float(deg)
 
 
 @dataclass
@@ -106,8 +131,9 @@ class PairStep:
 @dataclass
 class _Turn:
     """A turning camera's middle-row motion ``X_curr = R X_prev + t`` (unit ``t``), the
-    translation parallax it leaves (median px), the turn rates it held and fitted, and each
-    track's residual (px; nan for the tracks not fitted)."""
+    translation parallax it leaves (median px), the turn rates it held and fitted, each
+    track's residual (px; nan for the tracks not fitted) and the share of tracks in front of
+    both cameras with that direction."""
 
     R: np.ndarray
     t: np.ndarray
@@ -115,6 +141,7 @@ class _Turn:
     w_prev: np.ndarray
     w_curr: np.ndarray
     residual_px: np.ndarray
+    front: float = 1.0
 
 
 def _scale_from_inverse_depths(pairs: np.ndarray) -> float:
@@ -166,9 +193,11 @@ class PairwiseChain:
     def __init__(self, K: np.ndarray, D: np.ndarray | None, line_delay: float, model: str,
                  mode: str, ransac: RansacOptions, lm: LMOptions, initial_scale: float,
                  motion_prior: bool, max_scale_change: float, seed: int,
-                 rotation_only_parallax_px: float = ROTATION_ONLY_PARALLAX_PX):  # fmt: skip
+                 rotation_only_parallax_px: float = ROTATION_ONLY_PARALLAX_PX,
+                 uncertain_rotation_deg: float = UNCERTAIN_PAIR_ROTATION_DEG):  # fmt: skip
         self.K, self.D, self.line_delay = K, D, line_delay
         self.rotation_only_parallax_px = rotation_only_parallax_px
+        self.uncertain_rotation_deg = uncertain_rotation_deg
         self.model, self.mode, self.ransac, self.lm = model, mode, ransac, lm
         self.initial_scale, self.motion_prior = initial_scale, motion_prior
         self.max_scale_change, self.seed = max_scale_change, seed
@@ -245,12 +274,18 @@ class PairwiseChain:
                                        relative=rel)
         turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel.inliers, R_m, w_p,
                                       w_c, interval)
-        if (turned is None and UNCERTAIN_PAIR_ROTATION_DEG > 0 and self.model == "rs"
-                and _rotation_std_deg(rel) > UNCERTAIN_PAIR_ROTATION_DEG):
+        if (turned is None and self.uncertain_rotation_deg > 0 and self.model == "rs"
+                and _rotation_std_deg(rel) > self.uncertain_rotation_deg):
             # the velocities and the rotation traded off: a turning camera's rotation instead
             # (its direction given that rotation, the scale from the last baseline)
             turned = self._turning_camera(pts_prev, pts_curr, pair, row_mid, rel.inliers, R_m,
                                           w_p, w_c, interval, max_parallax_px=np.inf)
+            if (turned is not None and turned.front < UNCERTAIN_MIN_FRONT
+                    and self._last_motion is not None):  # fmt: skip
+                # its direction leaves many tracks behind a camera: the last pair's direction
+                # (constant velocity in the camera's frame) instead
+                R_last, t_last, _ = self._last_motion
+                turned.t = -turned.R @ (-R_last.T @ t_last)
         return rel, turned, None
 
     def _chain(self, pair: TrackedPair, interval: float, rel: RelativePoseResult,
@@ -388,18 +423,21 @@ class PairwiseChain:
         # with a 7 ms readout the directions were 100-130 deg off), the constant rate leaves
         # the shake's wobble. The one that puts more tracks in front of the camera is taken
         w_cv = so3_log(fit.R) / max(interval, 1e-9)
+        # with translation parallax allowed, a track's residual under the rotation is its
+        # parallax, not a sign of an outlier: every inlier votes on the direction
+        keep_px = None if np.isfinite(limit) else np.inf
         candidates = [c for c in (
-            direction_given_rotation(w_p, xa, sa, fit, xb, sb, robust, focal),
+            direction_given_rotation(w_p, xa, sa, fit, xb, sb, robust, focal, keep_px),
             direction_given_rotation(w_cv, xa, sa, dataclasses.replace(fit, w=w_cv,
                                                                        a=np.zeros(3)), xb, sb,
-                                     robust, focal)) if c is not None]  # fmt: skip
+                                     robust, focal, keep_px)) if c is not None]  # fmt: skip
         if not candidates:
             return None
-        centre = max(candidates, key=lambda c: c[1])[0]
+        centre, front = max(candidates, key=lambda c: c[1])
         residual = np.full(len(inl), np.nan)
         residual[inl] = fit.residual_px
         return _Turn(fit.R.T, -fit.R.T @ centre, fit.parallax_px, np.asarray(w_p, float),
-                     fit.w, residual)
+                     fit.w, residual, front)
 
     def _predicted_motion(self, interval: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The last estimated middle-row motion, its rotation scaled to ``interval`` (constant

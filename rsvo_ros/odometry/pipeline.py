@@ -29,7 +29,12 @@ from rsvo_ros.odometry.line_delay import (
     LineDelayEstimate,
     LineDelayOptions,
 )
-from rsvo_ros.odometry.pairwise import ROTATION_ONLY_PARALLAX_PX, PairwiseChain
+from rsvo_ros.odometry.pairwise import (
+    BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
+    ROTATION_ONLY_PARALLAX_PX,
+    UNCERTAIN_PAIR_ROTATION_DEG,
+    PairwiseChain,
+)
 from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.odometry.window import (
     WindowOdometry,
@@ -66,6 +71,11 @@ class PipelineOptions:
     # focal) is posed by that rotation (odometry/rotation.py): too short a baseline for the
     # pair estimator, as between a walk's consecutive frames (0: never)
     rotation_only_parallax_px: float = ROTATION_ONLY_PARALLAX_PX
+    # RS pairwise chain: a pair estimate whose rotation std is over this many degrees takes a
+    # turning camera's rotation at any parallax, its scale the last baseline (0: never; None:
+    # the backend's choice, BOOTSTRAP_UNCERTAIN_ROTATION_DEG for the window's bootstrap chain,
+    # UNCERTAIN_PAIR_ROTATION_DEG for the pairwise backend)
+    uncertain_rotation_deg: float | None = None
     seed: int = 0
     # Time that jumps. Back by more than this many frame intervals (a looped bag, a restarted
     # simulator): the odometry resets and a new trajectory starts at that frame; back by less
@@ -180,9 +190,13 @@ class OdometryPipeline:
         tau = self.line_delay if o.model == "rs" else 0.0
         if hasattr(self, "window"):
             self.window.close()  # its mapping thread (async mapping)
+        uncertain = o.uncertain_rotation_deg
+        if uncertain is None:
+            uncertain = (BOOTSTRAP_UNCERTAIN_ROTATION_DEG if o.backend == "window"
+                         else UNCERTAIN_PAIR_ROTATION_DEG)  # fmt: skip
         self.chain = PairwiseChain(self.K, self.D, self.line_delay, o.model, o.mode, o.ransac,
                                    o.lm, o.initial_scale, o.motion_prior, o.max_scale_change,
-                                   o.seed, o.rotation_only_parallax_px)  # fmt: skip
+                                   o.seed, o.rotation_only_parallax_px, uncertain)  # fmt: skip
         self.window = WindowOdometry(self.K, tau, o.window, o.model, o.ransac, o.lm,
                                      o.initial_scale, o.motion_prior, o.seed)  # fmt: skip
         self.window.calibrator = self.calibrator  # kept across resets: the same camera

@@ -114,6 +114,7 @@ def fit_rotation(posed: FrameState, x_posed: np.ndarray, s_posed: np.ndarray,
 def direction_given_rotation(w_prev: np.ndarray, x_prev: np.ndarray, s_prev: np.ndarray,
                              fit: RotationFit, x: np.ndarray, s: np.ndarray,
                              robust_px: float, focal: float,
+                             max_residual_px: float | None = None,
                              ) -> tuple[np.ndarray, float] | None:  # fmt: skip
     """The unit position of the second camera in the first one's frame (reference rows), its
     rotation known (``fit``, the first camera at the identity turning at ``w_prev``): each
@@ -122,14 +123,16 @@ def direction_given_rotation(w_prev: np.ndarray, x_prev: np.ndarray, s_prev: np.
     that do (the wrong direction of an ill-posed pair leaves many behind). None when
     degenerate. Good for a step along the view (a walker's); a step across it is mostly taken
     up by the fitted rotation (the small-baseline ambiguity) and its direction is not
-    recovered."""
+    recovered. Tracks whose residual under the rotation fit is over ``max_residual_px`` (3x
+    ``robust_px`` by default: with little translation a large one is an outlier) are left out;
+    a pair with real translation parallax needs them all (inf)."""
     ones = np.ones((len(x), 1))
     a = np.einsum("nij,nj->ni", so3_exp(np.asarray(s_prev, float)[:, None] * w_prev),
                   np.hstack([x_prev, ones]))  # fmt: skip
     b = np.einsum("nij,nj->ni", fit.row_rotations(s), np.hstack([x, ones]))
     ab = np.cross(a, b)
     n = ab / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))[:, None]
-    keep = fit.residual_px < 3.0 * robust_px
+    keep = fit.residual_px < (3.0 * robust_px if max_residual_px is None else max_residual_px)
     if keep.sum() < 8:
         return None
     wt = np.ones(len(x))

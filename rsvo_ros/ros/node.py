@@ -30,6 +30,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_srvs.srv import Trigger
 
 from rsvo_ros.core.geometry import pose_inverse
+from rsvo_ros.odometry.pairwise import uncertain_rotation_or_auto
 from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions, warm_up
 from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
 from rsvo_ros.ros.convert import (
@@ -218,6 +219,8 @@ class RsvoNode(Node):
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
         opts.rotation_only_parallax_px = float(self.p["rotation_only_parallax_px"])
+        opts.uncertain_rotation_deg = uncertain_rotation_or_auto(
+            float(self.p["uncertain_rotation_deg"]), "parameter uncertain_rotation_deg")
         opts.window.async_mapping = bool(self.p["async_mapping"])
         opts.window.map.prior_acc_rad_s2 = float(self.p["angular_acceleration_std"])
         opts.window.keyframe_log_max = int(self.p["path_max_length"])  # flat memory

@@ -19,6 +19,11 @@ from rcl_interfaces.msg import (
 from scipy.spatial.transform import Rotation
 
 from rsvo_ros.odometry.local_map import ACCELERATION_STD_RAD_S2
+from rsvo_ros.odometry.pairwise import (
+    BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
+    UNCERTAIN_PAIR_ROTATION_DEG,
+    uncertain_rotation_or_auto,
+)
 from rsvo_ros.odometry.pipeline import BACKENDS
 from rsvo_ros.odometry.tracker import MAX_REFINE_WINDOW_PX, refine_window_or_auto
 from rsvo_ros.twoview.estimator import MODELS
@@ -89,6 +94,12 @@ PARAMETERS = {
         "whose tracks a turning camera explains to within this many px (median, at 1000 px "
         "focal) is posed by that rotation, its baseline too short for the pair estimator "
         "(hand-held walks: ATE about halved, README). 0: never.", 0.0, 100.0)),
+    "uncertain_rotation_deg": (-1.0, _float(
+        "RS pairwise chain: a frame pair whose estimated rotation std is over this many "
+        "degrees is posed by a turning camera's rotation at any parallax, its scale the last "
+        "baseline (vehicles' first frames: RPE rotation about 0.7x, README). -1: the backend's "
+        f"choice ({BOOTSTRAP_UNCERTAIN_ROTATION_DEG:g} for the window's bootstrap, "
+        f"{UNCERTAIN_PAIR_ROTATION_DEG:g} for pairwise); 0: never.", -1.0, 180.0)),
     "lm_max_iterations": (30, _int("Levenberg-Marquardt iterations of the refinements.", 1,
                                    500)),
     "odom_frame": ("odom", _str("frame_id of the odometry and path.")),
@@ -155,6 +166,7 @@ def read_config(values: dict) -> NodeConfig:
     if p["line_delay_mode"] == "auto" and (p["model"] != "rs" or p["backend"] != "window"):
         raise ValueError("parameter line_delay_mode auto needs model rs and backend window")
     refine_window_or_auto(p["klt_refine_window_px"], "parameter klt_refine_window_px")
+    uncertain_rotation_or_auto(p["uncertain_rotation_deg"], "parameter uncertain_rotation_deg")
     if p["lost_odometry"] not in LOST_CHOICES:
         raise ValueError(f"parameter lost_odometry must be one of {LOST_CHOICES}, "
                          f"got {p['lost_odometry']!r}")  # fmt: skip

@@ -21,7 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from rsvo_ros.odometry.local_map import ACCELERATION_STD_RAD_S2
-from rsvo_ros.odometry.pairwise import ROTATION_ONLY_PARALLAX_PX
+from rsvo_ros.odometry.pairwise import (
+    BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
+    ROTATION_ONLY_PARALLAX_PX,
+    UNCERTAIN_PAIR_ROTATION_DEG,
+    uncertain_rotation_or_auto,
+)
 from rsvo_ros.odometry.pipeline import (
     BACKENDS,
     FrameResult,
@@ -356,6 +361,9 @@ def replay(cfg: ReplayConfig) -> dict:
         "bag": str(cfg.bag), "model": cfg.model, "backend": options.backend,
         "motion_prior": options.motion_prior,
         "rotation_only_parallax_px": options.rotation_only_parallax_px,
+        # the chain's uncertain-rotation limit in use (deg; 0: never)
+        "uncertain_rotation_deg": (pipeline.chain.uncertain_rotation_deg
+                                   if pipeline is not None else None),
         "async_mapping": options.window.async_mapping,
         "angular_acceleration_std": options.window.map.prior_acc_rad_s2,
         # the tracker's small-window refinement in use (px; 0: off)
@@ -656,6 +664,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pairwise chain: a pair whose tracks a turning camera explains to "
                         "within PX (median, at 1000 px focal) is posed by that rotation "
                         f"(default {ROTATION_ONLY_PARALLAX_PX:g}; 0: never)")
+    p.add_argument("--uncertain-rotation", type=float, default=-1.0, metavar="DEG",
+                   help="RS pairwise chain: a pair whose estimated rotation std is over DEG "
+                        "takes a turning camera's rotation at any parallax (-1, default: "
+                        f"{BOOTSTRAP_UNCERTAIN_ROTATION_DEG:g} for the window backend's "
+                        f"bootstrap, {UNCERTAIN_PAIR_ROTATION_DEG:g} for the pairwise one; "
+                        "0: never)")
     p.add_argument("--window-option", type=window_option_arg, action="append", default=[],
                    metavar="NAME=VALUE",
                    help="window backend: set a numeric WindowOptions field, e.g. "
@@ -687,6 +701,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         refine_window = refine_window_or_auto(args.klt_refine_window, "--klt-refine-window")
+        uncertain = uncertain_rotation_or_auto(args.uncertain_rotation, "--uncertain-rotation")
     except ValueError as exc:
         print(f"rsvo_replay: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -700,6 +715,7 @@ def main(argv: list[str] | None = None) -> int:
     options.window.async_mapping = args.async_mapping
     options.window.map.prior_acc_rad_s2 = args.angular_acceleration
     options.rotation_only_parallax_px = args.rotation_only_parallax
+    options.uncertain_rotation_deg = uncertain
     set_window_options(options, args.window_option)
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
                        args.camera_info_topic, args.ground_truth_topic,

@@ -165,12 +165,21 @@ def test_a_refinement_that_would_jump_keeps_the_pyramids_position(textured):
             FeatureTracker(TrackerOptions(refine_window_px=bad))
 
 
-def _first_rotation_errors(cfg, frames):
-    pipe = OdometryPipeline(intrinsics(cfg.width, cfg.height), None, cfg.tau, PipelineOptions())
+def _first_step_errors(cfg, frames, **options):
+    """Each frame's rotation error against the previous frame, and the direction error of its
+    step (row 0 to row 0, in the previous camera), in degrees."""
+    pipe = OdometryPipeline(intrinsics(cfg.width, cfg.height), None, cfg.tau,
+                            PipelineOptions(**options))  # fmt: skip
     T = [pipe.process(round(fr.stamp * 1e9), fr.image).T_world_cam for fr in frames]
-    return np.array([rotation_angle_deg((a.R_world_cam.T @ b.R_world_cam).T
-                                        @ (Ta[:3, :3].T @ Tb[:3, :3]))
-                     for a, b, Ta, Tb in zip(frames, frames[1:], T, T[1:], strict=False)])
+    rot = np.array([rotation_angle_deg((a.R_world_cam.T @ b.R_world_cam).T
+                                       @ (Ta[:3, :3].T @ Tb[:3, :3]))
+                    for a, b, Ta, Tb in zip(frames, frames[1:], T, T[1:], strict=False)])
+    steps = [(a.R_world_cam.T @ (b.p_world_cam - a.p_world_cam), Ta[:3, :3].T @ (Tb[:3, 3]
+              - Ta[:3, 3])) for a, b, Ta, Tb in zip(frames, frames[1:], T, T[1:], strict=False)]
+    direction = np.array([np.degrees(np.arccos(np.clip(g @ e / np.linalg.norm(g)
+                                                       / np.linalg.norm(e), -1, 1)))
+                          for g, e in steps])  # fmt: skip
+    return rot, direction
 
 
 def test_an_uncertain_pair_rotation_is_taken_from_a_turning_camera(monkeypatch):
@@ -178,14 +187,22 @@ def test_an_uncertain_pair_rotation_is_taken_from_a_turning_camera(monkeypatch):
     starts: on this one the pair estimator's first rotation was 7 deg off (true 1.3 deg; its
     own rotation std 3.5 deg) and the next three 2-4 deg, as the error was the next pairs'
     start. With a turning camera's rotation for pairs whose rotation std is over
-    UNCERTAIN_PAIR_ROTATION_DEG every frame is within 1.1 deg; without, the check fails."""
+    BOOTSTRAP_UNCERTAIN_ROTATION_DEG (the default) every frame is within 0.7 deg; at 1 deg
+    (the previous rule) within 1.1 deg; never (0), the check fails. The turning camera's
+    direction of pairs 2 and 3 left a third of the tracks behind a camera and was 86-124 deg
+    off; the last pair's direction is kept there (UNCERTAIN_MIN_FRONT): every step of the
+    first four within 15 deg, against up to 103 deg without."""
     from rsvo_ros.odometry import pairwise
 
-    cfg = SynthConfig(frames=8, motion="vehicle", severity=2.0, seed=10)
+    cfg = SynthConfig(frames=6, motion="vehicle", severity=2.0, seed=10)
     frames = render_sequence(cfg)
-    assert _first_rotation_errors(cfg, frames).max() < 1.5
-    monkeypatch.setattr(pairwise, "UNCERTAIN_PAIR_ROTATION_DEG", 0.0)
-    assert _first_rotation_errors(cfg, frames).max() > 4.0
+    rot, direction = _first_step_errors(cfg, frames)
+    assert rot.max() < 0.7
+    assert direction[:4].max() < 15.0, direction
+    assert _first_step_errors(cfg, frames, uncertain_rotation_deg=1.0)[0].max() < 1.5
+    assert _first_step_errors(cfg, frames, uncertain_rotation_deg=0.0)[0].max() > 4.0
+    monkeypatch.setattr(pairwise, "UNCERTAIN_MIN_FRONT", 0.0)
+    assert _first_step_errors(cfg, frames)[1][:4].max() > 45.0
 
 
 @pytest.mark.parametrize("backend", ["window", "pairwise"])

@@ -244,6 +244,7 @@ def test_invalid_parameters_fail_at_start_up(tmp_path):
     for args, word in ((["-p", "model:=fisheye"], "model"),
                        (["-p", "max_features:=3"], "max_features"),
                        (["-p", "klt_refine_window_px:=2"], "klt_refine_window_px"),
+                       (["-p", "uncertain_rotation_deg:=-0.5"], "uncertain_rotation_deg"),
                        (["-p", "line_delay:=-1.0"], "line_delay"),
                        (["-p", "base_to_camera:=[0.0, 0.0]"], "base_to_camera"),
                        (["-p", "line_delay_mode:=auto", "-p", "model:=gs"], "line_delay_mode"),

@@ -11,6 +11,10 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader
 
+from rsvo_ros.odometry.pairwise import (
+    BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
+    UNCERTAIN_PAIR_ROTATION_DEG,
+)
 from rsvo_ros.ros import bagio
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import main as replay_main
@@ -342,6 +346,23 @@ def test_klt_refine_window_flag_reaches_the_tracker_and_is_checked(vehicle_bag, 
         assert replay_main([str(vehicle_bag), "--output", str(tmp_path / f"bad{bad}"),
                             "--klt-refine-window", bad, "--no-progress"]) == 2
         assert "--klt-refine-window" in capsys.readouterr().err
+
+
+def test_uncertain_rotation_flag_reaches_the_chain_and_is_checked(vehicle_bag, tmp_path, capsys):
+    runs = {"default": [], "never": ["--uncertain-rotation", "0"],
+            "pairwise": ["--backend", "pairwise"], "two": ["--uncertain-rotation", "2"]}
+    used = {}
+    for name, extra in runs.items():
+        assert replay_main([str(vehicle_bag), "--output", str(tmp_path / name), "--max-frames",
+                            "3", "--no-progress", *extra]) == 0
+        used[name] = json.loads((tmp_path / name / "summary.json").read_text())[
+            "uncertain_rotation_deg"]
+    assert used == {"default": BOOTSTRAP_UNCERTAIN_ROTATION_DEG, "never": 0.0,
+                    "pairwise": UNCERTAIN_PAIR_ROTATION_DEG, "two": 2.0}
+    for bad in ("-0.5", "nan"):
+        assert replay_main([str(vehicle_bag), "--output", str(tmp_path / "bad"),
+                            "--uncertain-rotation", bad, "--no-progress"]) == 2
+        assert "--uncertain-rotation" in capsys.readouterr().err
 
 
 def test_window_option_flag_sets_a_field_records_it_and_is_checked(vehicle_bag, tmp_path,
