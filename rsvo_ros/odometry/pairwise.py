@@ -285,7 +285,8 @@ class PairwiseChain:
                 # its direction leaves many tracks behind a camera: the last pair's direction
                 # (constant velocity in the camera's frame) instead
                 R_last, t_last, _ = self._last_motion
-                turned.t = -turned.R @ (-R_last.T @ t_last)
+                centre_last = -R_last.T @ t_last  # its camera in the camera before it
+                turned.t = -turned.R @ centre_last
         return rel, turned, None
 
     def _chain(self, pair: TrackedPair, interval: float, rel: RelativePoseResult,

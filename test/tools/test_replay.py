@@ -329,40 +329,43 @@ def test_angular_acceleration_flag_reaches_the_window_and_is_checked(vehicle_bag
     assert "--angular-acceleration" in capsys.readouterr().err
 
 
+def _summary_fields(bag, tmp_path, runs: dict, key: str, frames: int) -> dict:
+    """Replay ``bag`` once per ``runs`` entry (name -> extra flags, first ``frames`` frames);
+    each run's ``summary.json`` value of ``key``."""
+    used = {}
+    for name, extra in runs.items():
+        assert replay_main([str(bag), "--output", str(tmp_path / name), "--max-frames",
+                            str(frames), "--no-progress", *extra]) == 0
+        used[name] = json.loads((tmp_path / name / "summary.json").read_text())[key]
+    return used
+
+
+def _rejected(bag, tmp_path, capsys, flag: str, values) -> None:
+    """Each bad value of ``flag`` stops rsvo_replay with exit 2 and a message naming it."""
+    for bad in values:
+        assert replay_main([str(bag), "--output", str(tmp_path / f"bad{bad}"), flag, bad,
+                            "--no-progress"]) == 2
+        assert flag in capsys.readouterr().err
+
+
 def test_klt_refine_window_flag_reaches_the_tracker_and_is_checked(vehicle_bag, tmp_path,
                                                                     capsys):
     runs = {"default": [], "off": ["--klt-refine-window", "0"],
             "pairwise": ["--backend", "pairwise"], "seven": ["--klt-refine-window", "7"]}
-    used = {}
-    for name, extra in runs.items():
-        assert replay_main([str(vehicle_bag), "--output", str(tmp_path / name), "--max-frames",
-                            "4", "--no-progress", *extra]) == 0
-        used[name] = json.loads((tmp_path / name / "summary.json").read_text())[
-            "klt_refine_window_px"]
+    used = _summary_fields(vehicle_bag, tmp_path, runs, "klt_refine_window_px", 4)
     assert used == {"default": 11, "off": 0, "pairwise": 0, "seven": 7}
     traj = {n: (tmp_path / n / "trajectory.tum").read_text() for n in ("default", "off")}
     assert traj["default"] != traj["off"]  # the refinement moved the tracks
-    for bad in ("2", "99", "-3"):
-        assert replay_main([str(vehicle_bag), "--output", str(tmp_path / f"bad{bad}"),
-                            "--klt-refine-window", bad, "--no-progress"]) == 2
-        assert "--klt-refine-window" in capsys.readouterr().err
+    _rejected(vehicle_bag, tmp_path, capsys, "--klt-refine-window", ("2", "99", "-3"))
 
 
 def test_uncertain_rotation_flag_reaches_the_chain_and_is_checked(vehicle_bag, tmp_path, capsys):
     runs = {"default": [], "never": ["--uncertain-rotation", "0"],
             "pairwise": ["--backend", "pairwise"], "two": ["--uncertain-rotation", "2"]}
-    used = {}
-    for name, extra in runs.items():
-        assert replay_main([str(vehicle_bag), "--output", str(tmp_path / name), "--max-frames",
-                            "3", "--no-progress", *extra]) == 0
-        used[name] = json.loads((tmp_path / name / "summary.json").read_text())[
-            "uncertain_rotation_deg"]
+    used = _summary_fields(vehicle_bag, tmp_path, runs, "uncertain_rotation_deg", 3)
     assert used == {"default": BOOTSTRAP_UNCERTAIN_ROTATION_DEG, "never": 0.0,
                     "pairwise": UNCERTAIN_PAIR_ROTATION_DEG, "two": 2.0}
-    for bad in ("-0.5", "nan"):
-        assert replay_main([str(vehicle_bag), "--output", str(tmp_path / "bad"),
-                            "--uncertain-rotation", bad, "--no-progress"]) == 2
-        assert "--uncertain-rotation" in capsys.readouterr().err
+    _rejected(vehicle_bag, tmp_path, capsys, "--uncertain-rotation", ("-0.5", "nan"))
 
 
 def test_window_option_flag_sets_a_field_records_it_and_is_checked(vehicle_bag, tmp_path,
