@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from collections import deque
+from pathlib import Path as FilePath
 
 import cv2
 import numpy as np
@@ -46,7 +47,7 @@ from rsvo_ros.ros.convert import (
     stamp_ns,
     xyz_cloud_data,
 )
-from rsvo_ros.ros.params import PARAMETERS, help_text, read_config
+from rsvo_ros.ros.params import PARAMETERS, help_text, params_yaml, read_config
 
 try:  # not on PyPI: a ROS install provides it, else launch_scripts/setup.sh builds it
     from tf2_msgs.msg import TFMessage
@@ -96,6 +97,7 @@ class RsvoNode(Node):
         self._map_ms: deque = deque(maxlen=100)  # per keyframe: the window BA
         self._publish_ms: deque = deque(maxlen=100)  # messages filled and published
         self._last_inlier_ratio = 0.0
+        self._line_delay_saved: tuple | None = None  # (status, value) last written
         self._state = "waiting for camera info"
         self._tracking = "initialising"
         self._path: deque = deque(maxlen=int(self.p["path_max_length"]))
@@ -273,6 +275,7 @@ class RsvoNode(Node):
             self.pipeline.set_camera(K, D, float(self.p["line_delay"]))
             res = self.pipeline.process(stamp_ns(msg.header), gray)
         self._proc_ms.append((time.perf_counter() - t0) * 1e3)
+        self._save_line_delay()
         self._track_ms.append(res.time_ms - res.mapping_ms)
         if res.mapping_ms > 0:
             self._map_ms.append(res.mapping_ms)
@@ -419,12 +422,38 @@ class RsvoNode(Node):
             out["line_delay_windows"] = str(len(pipeline.calibrator.windows))
         return out
 
+    def _save_line_delay(self, final: bool = False) -> None:
+        """``line_delay_save_file``: a converged estimate (or, at shutdown, the last one) as a
+        parameter file the next start loads, written once per value (atomically)."""
+        path = self.p["line_delay_save_file"]
+        e = self.pipeline.line_delay_estimate if self.pipeline is not None else None
+        if not path or e is None or e.line_delay_s is None \
+                or e.status not in (("estimated", "converged") if final else ("converged",)):
+            return
+        if self._line_delay_saved == (e.status, e.line_delay_s):
+            return
+        target = FilePath(path).expanduser()
+        text = params_yaml(e.as_dict(), f"rsvo_node line_delay_mode auto ({e.status})",
+                           mode="auto", node_name=self.get_name())
+        try:
+            tmp = target.with_name(target.name + ".tmp")
+            tmp.write_text(text)
+            tmp.replace(target)
+        except OSError as exc:
+            self.get_logger().error(f"line_delay_save_file: cannot write {target}: {exc}")
+            self._line_delay_saved = (e.status, e.line_delay_s)  # said once per value
+            return
+        self._line_delay_saved = (e.status, e.line_delay_s)
+        self.get_logger().info(f"line delay {e.line_delay_s:.6g} s/row ({e.status}) written to "
+                               f"{target}; start with --params-file {target} to begin from it")
+
     def destroy_node(self):
         self._stop.set()
         self._wake.set()
         self._worker.join(timeout=5.0)
         if self.pipeline is not None:
             self.pipeline.close()
+            self._save_line_delay(final=True)
         return super().destroy_node()
 
 

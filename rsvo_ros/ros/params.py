@@ -8,6 +8,7 @@ image_tools does; :func:`read_config` turns the declared values into a checked
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from rcl_interfaces.msg import (
@@ -66,6 +67,11 @@ PARAMETERS = {
         "fixed: use line_delay; auto: estimate the line delay from the video (RS model, window "
         "backend; line_delay is the start, or a nominal half-frame readout when it is 0) and "
         "report it in the diagnostics.", LINE_DELAY_MODES)),
+    "line_delay_save_file": ("", _str(
+        "line_delay_mode auto: write the estimate to this ROS 2 parameter file when it "
+        "converges and at shutdown (line_delay: the estimate, line_delay_mode: auto), so that "
+        "the next start with --params-file FILE begins from it instead of the nominal "
+        "half-frame readout; '' (default): not written.")),
     "model": ("rs", _str("Relative pose model.", MODELS)),
     "backend": ("window", _str("Odometry backend: window (keyframes, a local map and the RS "
                                "window bundle adjustment) or pairwise (the paper's chain of "
@@ -149,6 +155,26 @@ class NodeConfig:
         return self.values[name]
 
 
+def params_yaml(estimate: dict, source: str, mode: str = "fixed",
+                node_name: str = "rsvo_node") -> str:
+    """A ROS 2 parameter file for the node with a line delay estimate (a
+    :class:`~rsvo_ros.odometry.line_delay.LineDelayEstimate` as a dict); ``mode``: the
+    ``line_delay_mode`` it sets (fixed: use the value; auto: start from it and go on
+    estimating)."""
+    if mode not in LINE_DELAY_MODES:
+        raise ValueError(f"mode must be one of {LINE_DELAY_MODES}, got {mode!r}")
+    return (f"# {source}: {estimate['status']}, {estimate['windows']} windows, "
+            f"{estimate['frames']} frames\n"
+            f"# line delay {estimate['line_delay_s']:.6g} +- {estimate['std_s']:.3g} s/row; "
+            f"readout {estimate['readout_s'] * 1e3:.3f} ms = "
+            f"{estimate['readout_fraction']:.3f} +- {estimate['std_fraction']:.3f} frame "
+            "intervals\n"
+            f"{node_name}:\n"
+            "  ros__parameters:\n"
+            f"    line_delay: {estimate['line_delay_s']:.6g}\n"
+            f"    line_delay_mode: {mode}\n")
+
+
 def read_config(values: dict) -> NodeConfig:
     """Check the declared values (ranges are enforced by rclpy already); ``ValueError`` names
     the parameter that is wrong."""
@@ -165,6 +191,12 @@ def read_config(values: dict) -> NodeConfig:
                          f"got {p['line_delay_mode']!r}")  # fmt: skip
     if p["line_delay_mode"] == "auto" and (p["model"] != "rs" or p["backend"] != "window"):
         raise ValueError("parameter line_delay_mode auto needs model rs and backend window")
+    if p["line_delay_save_file"]:
+        if p["line_delay_mode"] != "auto":
+            raise ValueError("parameter line_delay_save_file needs line_delay_mode auto")
+        folder = Path(p["line_delay_save_file"]).expanduser().parent
+        if not folder.is_dir():
+            raise ValueError(f"parameter line_delay_save_file: folder {folder} does not exist")
     refine_window_or_auto(p["klt_refine_window_px"], "parameter klt_refine_window_px")
     uncertain_rotation_or_auto(p["uncertain_rotation_deg"], "parameter uncertain_rotation_deg")
     if p["lost_odometry"] not in LOST_CHOICES:

@@ -17,23 +17,10 @@ from pathlib import Path
 
 from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.ros import bagio
+from rsvo_ros.ros.params import params_yaml
 from rsvo_ros.tools.replay import ReplayConfig, ReplayError, replay
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
-
-
-def params_yaml(estimate: dict, bag: Path) -> str:
-    """The node's parameter file for an estimate (``line_delay_mode: fixed``)."""
-    return (f"# rsvo_calibrate {bag}: {estimate['status']}, {estimate['windows']} windows, "
-            f"{estimate['frames']} frames\n"
-            f"# line delay {estimate['line_delay_s']:.6g} +- {estimate['std_s']:.3g} s/row; "
-            f"readout {estimate['readout_s'] * 1e3:.3f} ms = "
-            f"{estimate['readout_fraction']:.3f} +- {estimate['std_fraction']:.3f} frame "
-            "intervals\n"
-            "rsvo_node:\n"
-            "  ros__parameters:\n"
-            f"    line_delay: {estimate['line_delay_s']:.6g}\n"
-            "    line_delay_mode: fixed\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -79,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
           f"windows of {summary['frames_in']} frames")
     if e["bag_line_delay_s"] is not None:
         print(f"rsvo_calibrate: the bag records {e['bag_line_delay_s'] * 1e6:.2f} us/row")
-    args.output.write_text(params_yaml(e, args.bag))
+    args.output.write_text(params_yaml(e, f"rsvo_calibrate {args.bag}"))
     print(f"rsvo_calibrate: wrote {args.output} (rsvo_node --ros-args --params-file "
           f"{args.output})")
     return EXIT_OK

@@ -1,22 +1,25 @@
 """The README's line-delay table: ``line_delay: auto`` on synthetic bags with known line delays.
 
-    python -m rsvo_ros.tools.line_delay_table OUT [--frames 150]
+    python -m rsvo_ros.tools.line_delay_table OUT [--frames 150] [--jobs 2]
 
-For each case a bag is written (``rsvo_synth``) and replayed three times: with ``--line-delay
-auto``, with the true line delay and with 0 (a global-shutter model of an RS camera). Columns:
-the true and the estimated line delay (with the bootstrap uncertainty), the relative error, and
-the ATE of each replay. Seeds 0, 100 and 101 (walks) and 0 (vehicle, handheld) were looked at
-while the method was chosen; the 200-series were held out until the spline velocities and the
-refining schedule were compared on them (2026-11-23); the 300-series ("fresh") were written
-after that choice, and no setting was changed for them. Writes ``line_delay.md`` (the table and
-per-group counts against the issue's targets), ``line_delay.json`` and ``line_delay.png`` into
-OUT.
+For each case a bag is written (``rsvo_synth``) and replayed: with ``--line-delay auto
+--two-pass`` (the online pass, as the node runs, and the offline second pass with its
+estimate), with the true line delay and with 0 (a global-shutter model of an RS camera).
+Columns: the true and the estimated line delay (with the bootstrap uncertainty), the relative
+error, and the ATE of each replay. Seeds 0, 100 and 101 (walks) and 0 (vehicle, handheld) were
+looked at while the method was chosen; the 200-series were held out until the spline velocities
+and the refining schedule were compared on them (2026-11-23); the 300-series ("fresh") were
+written after that choice, and no setting was changed for them; "fresh 2" (seeds 500-502) were
+written when the two passes were added and run once with them. Writes ``line_delay.md`` (the
+table and per-group counts against the issue's targets), ``line_delay.json`` and
+``line_delay.png`` into OUT.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import sys
 from pathlib import Path
 
@@ -24,7 +27,7 @@ import numpy as np
 
 from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.sim.synth import SynthConfig
-from rsvo_ros.tools.replay import ReplayConfig, replay
+from rsvo_ros.tools.replay import ReplayConfig, replay, replay_two_pass
 from rsvo_ros.tools.synth_bag import write_bag
 
 CASES = [  # (group, motion, severity, seed, line delay s/row)
@@ -46,6 +49,11 @@ CASES = [  # (group, motion, severity, seed, line delay s/row)
     ("fresh", "vehicle", 2.0, 301, 1e-4),
     ("fresh", "handheld", 1.0, 300, 5e-5),
     ("fresh", "handheld", 2.0, 301, 3e-5),
+    # written when the two passes were added (2026-11-25), run once with them
+    *[("fresh 2", "walk", 1.0, seed, ld) for seed in (500, 501) for ld in (4e-5, 9e-5)],
+    ("fresh 2", "walk", 2.0, 502, 8e-5),
+    ("fresh 2", "handheld", 1.0, 500, 8e-5),
+    ("fresh 2", "vehicle", 2.0, 500, 6e-5),
 ]
 
 
@@ -61,15 +69,20 @@ def run_case(out: Path, motion: str, severity: float, seed: int, line_delay: flo
     for label, opts, ld in (("auto", PipelineOptions(line_delay_auto=True), None),
                             ("true", PipelineOptions(), line_delay),
                             ("zero", PipelineOptions(), 0.0)):
-        s = replay(ReplayConfig(bag, out / f"{name}__{label}", line_delay=ld, overwrite=True,
-                                progress=False, options=opts))  # fmt: skip
-        row[f"ate_{label}_m"] = s["accuracy"]["ate_m"]["rmse"]
-        if label == "auto":
-            row["estimate"] = {k: v for k, v in s["line_delay_auto"].items()
-                               if k not in ("curve", "history")}
-            row["line_delay_used_s"] = s["line_delay_s"]
-            row["history"] = [[h["frames"], h["line_delay_s"]]
-                              for h in s["line_delay_auto"].get("history", [])]
+        cfg = ReplayConfig(bag, out / f"{name}__{label}", line_delay=ld, overwrite=True,
+                           progress=False, options=opts)  # fmt: skip
+        if label != "auto":
+            row[f"ate_{label}_m"] = replay(cfg)["accuracy"]["ate_m"]["rmse"]
+            continue
+        # the online pass (as the node runs) and the offline second pass with its estimate
+        s = replay_two_pass(cfg)
+        row["ate_auto_m"] = s["two_pass"]["first_pass_ate_m"]
+        row["ate_two_pass_m"] = s["accuracy"]["ate_m"]["rmse"]
+        row["estimate"] = {k: v for k, v in s["line_delay_auto"].items()
+                           if k not in ("curve", "history")}
+        row["line_delay_used_s"] = s["two_pass"]["first_pass_line_delay_s"]
+        row["history"] = [[h["frames"], h["line_delay_s"]]
+                          for h in s["line_delay_auto"].get("history", [])]
     return row
 
 
@@ -89,10 +102,12 @@ def summary(rows: list[dict]) -> str:
         rs = [r for r in rows if r["group"] == group and r["line_delay_true_s"] > 0]
         gs = [r for r in rows if r["group"] == group and r["line_delay_true_s"] == 0]
         ate = sum(r["ate_auto_m"] <= 1.10 * r["ate_true_m"] for r in rs)
+        two = sum(r["ate_two_pass_m"] <= 1.10 * r["ate_true_m"] for r in rs)
         zero = sum(within(r) for r in gs)
         out.append(f"- {group}: line delay within 10 % on {sum(within(r) for r in rs)} of "
                    f"{len(rs)} rolling-shutter bags, ATE auto within 10 % of ATE true on {ate} "
-                   f"of {len(rs)}; global shutter within 2 us/row on {zero} of {len(gs)}")
+                   f"of {len(rs)} (two passes: {two}); global shutter within 2 us/row on "
+                   f"{zero} of {len(gs)}")
     return "\n".join(out)
 
 
@@ -109,8 +124,8 @@ def plot(path: Path, rows: list[dict]) -> None:
     ax.fill_between([0, top], [0, 0.9 * top], [0, 1.1 * top], color="0.9", label="within 10 %")
     ax.plot([0, top], [0, top], "k-", lw=0.8)
     for (group, marker), colour in zip(
-            (("looked at", "o"), ("held out", "s"), ("fresh", "^")),
-            ("tab:gray", "tab:blue", "tab:red"), strict=True):  # fmt: skip
+            (("looked at", "o"), ("held out", "s"), ("fresh", "^"), ("fresh 2", "v")),
+            ("tab:gray", "tab:blue", "tab:red", "tab:green"), strict=True):  # fmt: skip
         grp = [r for r in rows if r["group"] == group and r["estimate"]["line_delay_s"]
                is not None]
         if not grp:
@@ -139,7 +154,8 @@ def plot(path: Path, rows: list[dict]) -> None:
 
 def table(rows: list[dict]) -> str:
     lines = ["| case | group | true (us/row) | estimate (us/row) | error | status | ATE auto | "
-             "ATE true | ATE auto / true | ATE with 0 |", "|---" * 10 + "|"]
+             "ATE true | ATE auto / true | ATE two passes / true | ATE with 0 |",
+             "|---" * 11 + "|"]
     for r in rows:
         e, true = r["estimate"], r["line_delay_true_s"]
         if e["line_delay_s"] is None:
@@ -151,8 +167,22 @@ def table(rows: list[dict]) -> str:
         lines.append(f"| {r['case']} | {r['group']} | {true * 1e6:.0f} | {est} | {err} | "
                      f"{e['status']} | {r['ate_auto_m']:.3f} m | {r['ate_true_m']:.3f} m | "
                      f"{r['ate_auto_m'] / max(r['ate_true_m'], 1e-9):.2f} | "
+                     f"{r['ate_two_pass_m'] / max(r['ate_true_m'], 1e-9):.2f} | "
                      f"{r['ate_zero_m']:.3f} m |")
     return "\n".join(lines)
+
+
+def _run_case(job: tuple) -> dict:
+    return run_case(*job)
+
+
+def _print_row(row: dict) -> None:
+    e = row["estimate"]
+    got = "-" if e["line_delay_s"] is None else f"{e['line_delay_s'] * 1e6:.1f} us/row"
+    print(f"[line_delay_table] {row['case']}: true {row['line_delay_true_s'] * 1e6:.0f} us/row, "
+          f"auto {got} ({e['status']}); ATE auto {row['ate_auto_m']:.3f} m (two passes "
+          f"{row['ate_two_pass_m']:.3f} m), true {row['ate_true_m']:.3f} m, zero "
+          f"{row['ate_zero_m']:.3f} m", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -161,18 +191,17 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", type=Path)
     p.add_argument("--frames", type=int, default=150)
+    p.add_argument("--jobs", type=int, default=1, help="cases replayed side by side (1)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for group, motion, sev, seed, ld in CASES:
-        row = run_case(args.out, motion, sev, seed, ld, args.frames)
-        row["group"] = group
-        rows.append(row)
-        e = row["estimate"]
-        got = "-" if e["line_delay_s"] is None else f"{e['line_delay_s'] * 1e6:.1f} us/row"
-        print(f"[line_delay_table] {row['case']}: true {ld * 1e6:.0f} us/row, auto {got} "
-              f"({e['status']}); ATE auto {row['ate_auto_m']:.3f} m, true "
-              f"{row['ate_true_m']:.3f} m, zero {row['ate_zero_m']:.3f} m", flush=True)
+    jobs = [(args.out, motion, sev, seed, ld, args.frames) for _, motion, sev, seed, ld in CASES]
+    with multiprocessing.Pool(max(args.jobs, 1)) as pool:
+        done = pool.imap(_run_case, jobs)  # in order, printed as each finishes
+        rows = []
+        for (group, *_), row in zip(CASES, done, strict=True):
+            row["group"] = group
+            rows.append(row)
+            _print_row(row)
     (args.out / "line_delay.json").write_text(json.dumps(rows, indent=1))
     text = table(rows) + "\n\n" + summary(rows) + "\n"
     (args.out / "line_delay.md").write_text(text)

@@ -10,6 +10,8 @@ Exit codes: 0 done, 1 the bag cannot be read or holds no usable frames, 2 bad ar
 from __future__ import annotations
 
 import argparse
+import copy
+import dataclasses
 import json
 import shutil
 import sys
@@ -430,6 +432,56 @@ def replay(cfg: ReplayConfig) -> dict:
     return summary
 
 
+FIRST_PASS_DIR = "first_pass"  # --two-pass: the online (first) pass's outputs, under --output
+
+
+def replay_two_pass(cfg: ReplayConfig) -> dict:
+    """``line_delay auto`` offline, in two passes: the first replays the bag as the live node
+    runs (estimating the line delay while it goes; its outputs in ``OUTPUT/first_pass``), the
+    second replays it again with the first pass's last estimate fixed. Online, the frames before
+    the first estimate (30-90) are posed with the nominal readout, and a wrong one can shrink
+    or stretch the map's scale there for good; the second pass poses them with the estimate.
+    Without a usable estimate (too little motion, too short a bag) the first pass is the
+    result, moved up into ``OUTPUT``. Returns the second pass's summary with ``two_pass``
+    (the first pass's line delay used at its end and its accuracy) and the first pass's
+    ``line_delay_auto``."""
+    if not cfg.options.line_delay_auto:
+        raise ValueError("two passes need line_delay auto (PipelineOptions.line_delay_auto)")
+    if (cfg.output / "odometry").exists() and not cfg.overwrite:
+        raise FileExistsError(f"{cfg.output} already holds a replay; pass --overwrite")
+    second_options = copy.deepcopy(cfg.options)  # replay() sets the tracker's options in place
+    first_dir = cfg.output / FIRST_PASS_DIR
+    first = replay(dataclasses.replace(cfg, output=first_dir, overwrite=True))
+    estimate = first["line_delay_auto"]
+    two_pass = {"first_pass_dir": FIRST_PASS_DIR, "first_pass_line_delay_s": first["line_delay_s"],
+                "first_pass_wall_time_s": first["wall_time_s"],
+                "first_pass_ate_m": (first["accuracy"]["ate_m"]["rmse"]
+                                     if "accuracy" in first else None)}
+    if estimate["status"] not in ("estimated", "converged") or estimate["line_delay_s"] is None:
+        for item in first_dir.iterdir():  # the first pass is the result
+            target = cfg.output / item.name
+            if target.is_dir():
+                shutil.rmtree(target)
+            item.replace(target)
+        first_dir.rmdir()
+        two_pass.update(second_pass=False, first_pass_dir=None,
+                        reason=f"no estimate to replay with: {estimate['status']} "
+                               f"({estimate.get('reason', '')})")
+        first["two_pass"] = two_pass
+        with open(cfg.output / "summary.json", "w") as f:
+            json.dump(first, f, indent=1)
+        return first
+    second_options.line_delay_auto = False
+    summary = replay(dataclasses.replace(cfg, line_delay=float(estimate["line_delay_s"]),
+                                         options=second_options, overwrite=True))
+    two_pass["second_pass"] = True
+    summary["two_pass"] = two_pass
+    summary["line_delay_auto"] = estimate
+    with open(cfg.output / "summary.json", "w") as f:
+        json.dump(summary, f, indent=1)
+    return summary
+
+
 def keyframe_summary(log: dict, gt_w: dict[int, np.ndarray], row0_time: float = 0.0) -> dict:
     """The window backend's keyframes (their final, window-refined states): how many, their
     row-0 velocities (``velocities``: stamp, ``w`` rad/s and ``v`` map units/s in the row-0
@@ -641,6 +693,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"seconds per image row (default: the bag's {bagio.LINE_DELAY_KEY}); "
                         "auto: estimated from the video (RS model, window backend; the bag's "
                         "value is then only reported)")
+    p.add_argument("--two-pass", action="store_true",
+                   help="with --line-delay auto: replay the bag twice, first as the live node "
+                        "does (estimating the line delay; outputs in OUTPUT/first_pass), then "
+                        "with that estimate fixed, so that the frames before the first "
+                        "estimate are posed with it too (offline only)")
     p.add_argument("--max-features", type=int, default=500, help="tracked corners (500)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N",
                    help="stop after the first N images (default: the whole bag)")
@@ -710,6 +767,9 @@ def main(argv: list[str] | None = None) -> int:
         print("rsvo_replay: --line-delay auto needs --model rs and --backend window",
               file=sys.stderr)
         return EXIT_USAGE
+    if args.two_pass and not auto:
+        print("rsvo_replay: --two-pass needs --line-delay auto", file=sys.stderr)
+        return EXIT_USAGE
     options = PipelineOptions(motion_prior=not args.no_motion_prior, backend=args.backend,
                               line_delay_auto=auto)
     options.window.async_mapping = args.async_mapping
@@ -723,7 +783,7 @@ def main(argv: list[str] | None = None) -> int:
                        args.max_features, args.overwrite, not args.no_progress,
                        options, args.max_frames, refine_window)  # fmt: skip
     try:
-        s = replay(cfg)
+        s = replay_two_pass(cfg) if args.two_pass else replay(cfg)
     except (ValueError, FileExistsError) as exc:
         print(f"rsvo_replay: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -741,6 +801,22 @@ def main(argv: list[str] | None = None) -> int:
     print(line)
     if "line_delay_auto" in s:
         print(f"rsvo_replay: line delay auto: {_describe_estimate(s['line_delay_auto'])}")
+    firsts = [h["frames"] for h in s.get("line_delay_auto", {}).get("history", [])
+              if h["line_delay_s"] is not None]
+    if firsts and not args.two_pass:
+        print(f"rsvo_replay: the {firsts[0]} frames before the first estimate ran with the "
+              "starting line delay; --two-pass replays the bag with the estimate")
+    if "two_pass" in s:
+        tp = s["two_pass"]
+        first_ate = ("" if tp["first_pass_ate_m"] is None
+                     else f", ATE {tp['first_pass_ate_m']:.3f} m")
+        if tp["second_pass"]:
+            print(f"rsvo_replay: two passes: the figures above are the second pass's, with "
+                  f"{s['line_delay_s'] * 1e6:.2f} us/row fixed; the first (online) pass in "
+                  f"{args.output / tp['first_pass_dir']}{first_ate}")
+        else:
+            print(f"rsvo_replay: two passes: no second pass, {tp['reason']}; the figures "
+                  "above are the first (online) pass's")
     print(f"rsvo_replay: wrote {args.output}/trajectory.tum, odometry/, summary.json, "
           "trajectory.png")
     return EXIT_OK

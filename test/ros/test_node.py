@@ -248,7 +248,11 @@ def test_invalid_parameters_fail_at_start_up(tmp_path):
                        (["-p", "line_delay:=-1.0"], "line_delay"),
                        (["-p", "base_to_camera:=[0.0, 0.0]"], "base_to_camera"),
                        (["-p", "line_delay_mode:=auto", "-p", "model:=gs"], "line_delay_mode"),
-                       (["-p", "lost_odometry:=zero"], "lost_odometry")):
+                       (["-p", "lost_odometry:=zero"], "lost_odometry"),
+                       (["-p", "line_delay_save_file:=/tmp/x.yaml"], "line_delay_save_file"),
+                       (["-p", "line_delay_mode:=auto", "-p",
+                         f"line_delay_save_file:={tmp_path}/no/such/x.yaml"],
+                        "does not exist")):
         proc = subprocess.run([str(BIN / "rsvo_node"), "--ros-args", *args], env=env,
                               capture_output=True, text=True, timeout=60)
         assert proc.returncode == 2, (args, proc.stdout, proc.stderr)

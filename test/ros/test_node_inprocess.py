@@ -3,6 +3,7 @@ the newest-frame policy. (The cross-process DDS graphs are in test_node.py.)"""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
@@ -267,5 +268,50 @@ def test_line_delay_auto_is_reported_in_the_diagnostics(ros_context):
         assert diag["line_delay_status"] == "collecting" and "line_delay_windows" in diag
         assert float(diag["line_delay_used"]) > 0  # a nominal readout until the first estimate
         assert h.node.pipeline.options.line_delay_auto
+    finally:
+        h.close()
+
+
+def test_line_delay_save_file_is_the_next_start(ros_context, tmp_path):
+    """line_delay_mode auto with line_delay_save_file: a converged estimate is written as a
+    parameter file (once per value; at shutdown the last estimate), and a node started from
+    that file begins from its line delay instead of the nominal readout."""
+    import yaml
+
+    from rsvo_ros.odometry.line_delay import LineDelayEstimate
+
+    saved = tmp_path / "line_delay.yaml"
+    h = Harness(ros_context, [Parameter("line_delay_mode", value="auto"),
+                              Parameter("line_delay_save_file", value=str(saved))])
+    try:
+        info, msgs = _frames(8)
+        h.feed(info, msgs[:4])
+        assert not saved.exists()  # collecting: nothing to save
+        est = LineDelayEstimate("estimated", line_delay_s=4.2e-5, std_s=2e-6,
+                                readout_fraction=0.45, std_fraction=0.02, readout_s=7.6e-3,
+                                windows=9, frames=60)
+        h.node.pipeline._take_estimate(est, 0)
+        h.feed(info, msgs[4:5])
+        assert not saved.exists()  # estimated, not converged: only at shutdown
+        h.node.pipeline._take_estimate(dataclasses.replace(est, status="converged",
+                                                           line_delay_s=4.5e-5), 0)
+        h.feed(info, msgs[5:6])
+        params = yaml.safe_load(saved.read_text())["rsvo_node"]["ros__parameters"]
+        assert params == {"line_delay": 4.5e-5, "line_delay_mode": "auto"}
+        saved.write_text("not written again")
+        h.feed(info, msgs[6:7])
+        assert saved.read_text() == "not written again"  # the same value: once
+        h.node.pipeline._take_estimate(dataclasses.replace(est, line_delay_s=4.7e-5), 0)
+        h.feed(info, msgs[7:8])
+        assert saved.read_text() == "not written again"  # a new estimate, not converged
+    finally:
+        h.close()
+    params = yaml.safe_load(saved.read_text())["rsvo_node"]["ros__parameters"]
+    assert params["line_delay"] == 4.7e-5  # at shutdown: the last estimate
+    h = Harness(ros_context, [Parameter(k, value=v) for k, v in params.items()])
+    try:
+        h.feed(info, msgs[:3])
+        assert h.node.pipeline.options.line_delay_auto
+        assert h.node.pipeline.line_delay == 4.7e-5  # the start, until its own first estimate
     finally:
         h.close()

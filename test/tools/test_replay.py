@@ -301,6 +301,49 @@ def test_rsvo_calibrate_writes_a_parameter_file_the_node_can_load(walk_bag, tmp_
     assert "no estimate" in capsys.readouterr().err and not (tmp_path / "no.yaml").exists()
 
 
+def test_two_passes_replay_with_the_first_pass_estimate(walk_bag, tmp_path, capsys):
+    """--line-delay auto --two-pass: the online pass in OUTPUT/first_pass, then the bag again
+    with its estimate fixed; without an estimate the online pass is the result."""
+    out = tmp_path / "two"
+    assert replay_main([str(walk_bag), "--output", str(out), "--line-delay", "auto",
+                        "--two-pass", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "two passes: the figures above are the second pass's" in printed
+    first = json.loads((out / "first_pass" / "summary.json").read_text())
+    second = json.loads((out / "summary.json").read_text())
+    estimate = first["line_delay_auto"]
+    assert estimate["status"] in ("estimated", "converged")
+    assert second["line_delay_s"] == estimate["line_delay_s"]
+    assert second["line_delay_auto"] == estimate  # the estimate it was replayed with
+    tp = second["two_pass"]
+    assert tp["second_pass"] and tp["first_pass_ate_m"] == first["accuracy"]["ate_m"]["rmse"]
+    assert (out / "trajectory.tum").exists() and (out / "first_pass" / "trajectory.tum").exists()
+    # the second pass has no estimate of its own: every frame at the fixed line delay
+    assert all(f["status"] in ("first", "posed", "held") for f in second["frames"])
+    assert second["frames_posed"] == first["frames_posed"] == 120
+    # a bag too short to estimate from: one pass, its outputs where a replay puts them
+    short = tmp_path / "short"
+    write_bag(short, SynthConfig(frames=12, motion="walk", seed=3), progress=False)
+    assert replay_main([str(short), "--output", str(tmp_path / "one"), "--line-delay", "auto",
+                        "--two-pass", "--no-progress"]) == 0
+    assert "no second pass" in capsys.readouterr().out
+    one = json.loads((tmp_path / "one" / "summary.json").read_text())
+    assert not one["two_pass"]["second_pass"] and "collecting" in one["two_pass"]["reason"]
+    assert (tmp_path / "one" / "trajectory.tum").exists()
+    assert not (tmp_path / "one" / "first_pass").exists()
+    # one pass says how many frames ran before the first estimate, and what to do about it
+    assert replay_main([str(walk_bag), "--output", str(tmp_path / "online"), "--line-delay",
+                        "auto", "--no-progress"]) == 0
+    online = json.loads((tmp_path / "online" / "summary.json").read_text())
+    assert online["accuracy"] == first["accuracy"]  # the first pass is the online replay
+    firsts = [h["frames"] for h in online["line_delay_auto"]["history"]
+              if h["line_delay_s"] is not None]
+    assert f"the {firsts[0]} frames before the first estimate" in capsys.readouterr().out
+    # two passes need auto
+    assert replay_main([str(short), "--output", str(tmp_path / "x"), "--two-pass"]) == 2
+    assert "--two-pass needs --line-delay auto" in capsys.readouterr().err
+
+
 def test_max_frames_stops_early_and_is_checked(vehicle_bag, tmp_path, capsys):
     out = tmp_path / "five"
     assert replay_main([str(vehicle_bag), "--output", str(out), "--max-frames", "5",
