@@ -15,4 +15,16 @@ Layers, each importing only the ones listed before it (``test/test_layout.py`` c
 ``rsvo_ros.estimation`` is the stable import path of the two-view API (CONTRACTS.md).
 """
 
+import os
+
 __version__ = "0.1.0"
+
+
+def limit_blas_threads() -> None:
+    """One OpenBLAS thread for the package's programs (tools, node, probes), unless the
+    environment sets ``OPENBLAS_NUM_THREADS``. Every matrix they hand to BLAS or LAPACK is
+    small (3 x 3 to 17 x 17, or batches of them), and OpenBLAS's threads spin for a while after
+    each call, taking the cores from the solver's own (numba, OpenCV): in ``rsvo_bench`` the
+    MVO baseline's left the RS estimate that follows it 1.12x slower (README, "Speed"). Takes
+    effect only before numpy is first imported: the programs' packages call it on import."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

@@ -11,6 +11,9 @@ CPU use (% of one core, from /proc; the node is found by name or ``--node-pid``)
 node's frame counters over the run (received, processed, dropped, held, skipped: why frames
 got no odometry). Start the node first, e.g.
 ``rsvo_node --ros-args -p line_delay:=5e-5``.
+
+``--summary RESULT.json ...`` prints the results of earlier runs as the README's table, each
+row against issue 14's targets (``launch_scripts/latency_table.sh`` runs and summarises).
 """
 
 from __future__ import annotations
@@ -33,7 +36,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None, help="also write the results here")
     p.add_argument("--node-pid", type=int, default=None,
                    help="the node's process id (default: the process running rsvo_node)")
+    p.add_argument("--summary", nargs="+", metavar="RESULT_JSON", default=None,
+                   help="print earlier runs' --json files as a markdown table and exit")
     args = p.parse_args(argv)
+    if args.summary:
+        rows = []
+        for path in args.summary:
+            with open(path) as f:
+                rows.extend(json.load(f))
+        print(summary_table(rows))
+        return 0
     w, h = (int(x) for x in args.resolution.split("x"))
 
     import rclpy
@@ -125,6 +137,51 @@ def main(argv: list[str] | None = None) -> int:
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
+
+
+# issue 14's targets: (resolution, rate) -> (share of frames with odometry, delay p95 ms)
+TARGETS = {("1280x720", 15.0): (0.98, 60.0), ("1280x720", 30.0): (0.90, 80.0),
+           ("640x480", 30.0): (0.98, None)}
+NODE_CPU_TARGET = {("1280x720", 15.0): 150.0}  # % of one core
+
+
+def summary_table(rows: list[dict]) -> str:
+    """The probe's result rows as a markdown table, sorted by resolution and rate, with each
+    issue-14 target the row has and whether it was met."""
+    def key(r):
+        w, h = (int(x) for x in r["resolution"].split("x"))
+        return (w * h, r["rate_hz"])
+
+    def ms(x):
+        return "-" if x is None else f"{x:.0f}"
+
+    lines = ["| resolution | rate | frames with odometry | delay median / p95 | node CPU "
+             "| tracking / mapping / publishing (median) | dropped / held | target |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=key):
+        frames = r["odometry"] / max(r["sent"], 1)
+        target = TARGETS.get((r["resolution"], float(r["rate_hz"])))
+        cpu_target = NODE_CPU_TARGET.get((r["resolution"], float(r["rate_hz"])))
+        verdict = []
+        if target is not None:
+            share, p95 = target
+            ok = frames >= share
+            verdict.append(f">= {100 * share:.0f} % {'met' if ok else 'not met'}")
+            if p95 is not None:
+                ok = r["latency_ms_p95"] is not None and r["latency_ms_p95"] <= p95
+                verdict.append(f"p95 <= {p95:.0f} ms {'met' if ok else 'not met'}")
+        cpu = r.get("node_cpu_percent")
+        if cpu_target is not None:
+            ok = cpu is not None and cpu <= cpu_target
+            verdict.append(f"CPU <= {cpu_target / 100:.1f} cores {'met' if ok else 'not met'}")
+        nf = r.get("node_frames", {})
+        lines.append(
+            f"| {r['resolution']} | {r['rate_hz']:g} Hz | {r['odometry']} / {r['sent']} "
+            f"({100 * frames:.1f} %) | {ms(r['latency_ms_median'])} / "
+            f"{ms(r['latency_ms_p95'])} ms | {ms(cpu)} % | {r.get('tracking_ms_median')} / "
+            f"{r.get('mapping_ms_median')} / {r.get('publishing_ms_median')} ms | "
+            f"{nf.get('dropped', '-')} / {nf.get('held', '-')} | {'; '.join(verdict) or '-'} |")
+    return "\n".join(lines)
 
 
 FRAME_COUNTS = ("received", "processed", "dropped", "held", "skipped", "bad", "time_resets")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from rsvo_ros.ros.latency import _frame_counts
+from rsvo_ros.ros.latency import _frame_counts, summary_table
 
 
 def test_frame_counts_come_from_the_nodes_diagnostics():
@@ -10,3 +10,25 @@ def test_frame_counts_come_from_the_nodes_diagnostics():
             "tracking_state": "tracking", "line_delay": "5e-05"}
     assert _frame_counts(diag) == {"received": 90, "processed": 85, "dropped": 5, "held": 0}
     assert _frame_counts({}) == {}  # no diagnostics yet
+
+
+def _row(resolution, rate, odometry, p95, cpu=50.0):
+    return {"rate_hz": rate, "resolution": resolution, "sent": 300, "odometry": odometry,
+            "latency_ms_median": 20.0, "latency_ms_p95": p95, "node_cpu_percent": cpu,
+            "tracking_ms_median": "12.0", "mapping_ms_median": "40.0",
+            "publishing_ms_median": "1.0",
+            "node_frames": {"received": 300, "processed": odometry, "dropped": 300 - odometry,
+                            "held": 0}}  # fmt: skip
+
+
+def test_summary_table_sorts_rows_and_judges_each_target():
+    table = summary_table([_row("1280x720", 30.0, 285, 70.0), _row("640x480", 10.0, 300, 25.0),
+                           _row("1280x720", 15.0, 290, 61.0, cpu=160.0)])
+    lines = table.splitlines()
+    assert len(lines) == 2 + 3
+    assert lines[2].startswith("| 640x480 | 10 Hz | 300 / 300 (100.0 %)")
+    assert lines[2].endswith("| - |")  # no target at 640x480 10 Hz
+    # 285 of 300 is 95 %: >= 90 % met, p95 70 <= 80 met
+    assert ">= 90 % met; p95 <= 80 ms met" in lines[4]
+    # 290 of 300 is 96.7 % (< 98 %), p95 61 > 60, 1.6 cores > 1.5
+    assert ">= 98 % not met; p95 <= 60 ms not met; CPU <= 1.5 cores not met" in lines[3]
