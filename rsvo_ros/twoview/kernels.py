@@ -205,23 +205,6 @@ def _loss(e, robust):
 
 
 @nb.njit(**JIT)
-def _cost(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2, mu):
-    Rr = _rows(R)
-    tt = (t[0], t[1], t[2])
-    V = _velocities(vel)
-    c = 0.0
-    for m in range(idx.shape[0]):
-        i = idx[m]
-        xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
-        xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-        e = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
-        c += _loss(e, robust)
-    for j in range(12):
-        c += p2[j] * (vel[j] - mu[j]) ** 2
-    return c
-
-
-@nb.njit(**JIT)
 def _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust, p2, mu, H,
                       g):  # fmt: skip
     """Fills ``H = J^T W J + P``, ``g = J^T W e + P (vel - mu)`` (IRLS weights ``W`` of the
@@ -331,11 +314,17 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
             robust, p2, mu, basis, limits, anchor):
     """Marquardt's damped Gauss-Newton ``(H + lambda diag(H)) d = -g`` in the span of
     ``basis`` (17, k); a step that raises the cost or leaves ``limits`` is rejected. Returns
-    the state, its cost and the iterations run."""
+    the state, its cost and the iterations run.
+
+    A step within the limits is evaluated with its normal equations (one pass over the points
+    for the cost, the Jacobian and ``H``), which an accepted step then keeps: most steps are
+    accepted, and a cost pass followed by a normal-equation pass read every point twice."""
     k = basis.shape[1]
     full = k == NUM_PARAMS  # the identity basis: no projection
     H = np.empty((NUM_PARAMS, NUM_PARAMS))
     g = np.empty(NUM_PARAMS)
+    H_c = np.empty((NUM_PARAMS, NUM_PARAMS))  # the candidate's
+    g_c = np.empty(NUM_PARAMS)
     cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, robust,
                              p2, mu, H, g)
     it = 0
@@ -359,11 +348,10 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
                 if not np.isfinite(delta[i]):
                     delta[i] = 0.0
             R_c, t_c, vel_c = _retract(R, t, vel, delta)
-            cost_c = _cost(R_c, t_c, vel_c, x_prev, x_curr, s_prev, s_curr, cam, idx,
-                           robust, p2, mu)
-            if np.isfinite(cost_c) and cost_c < cost and _within_limits(R_c, vel_c, delta,
-                                                                        limits, anchor):
-                accepted = True
+            if _within_limits(R_c, vel_c, delta, limits, anchor):
+                cost_c = _normal_equations(R_c, t_c, vel_c, x_prev, x_curr, s_prev, s_curr,
+                                           cam, idx, robust, p2, mu, H_c, g_c)
+                accepted = np.isfinite(cost_c) and cost_c < cost
         if not accepted:
             lam *= 4.0
             if lam > LAMBDA_MAX:
@@ -371,11 +359,11 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
             continue
         rel = (cost - cost_c) / max(cost, 1e-300)
         R, t, vel, cost = R_c, t_c, vel_c, cost_c
+        H, H_c = H_c, H
+        g, g_c = g_c, g
         lam = max(lam / 3.0, 1e-12)
         if rel < rel_tol:
             break
-        cost = _normal_equations(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx,
-                                 robust, p2, mu, H, g)
     return R, t, vel, cost, it
 
 
@@ -405,19 +393,25 @@ def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, la
 
 
 @nb.njit(**JIT)
+def _residuals_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, out):
+    """Sampson errors (px) of one hypothesis on all correspondences, into ``out`` (N,)."""
+    Rr = _rows(R)
+    tt = (t[0], t[1], t[2])
+    V = _velocities(vel)
+    for i in range(x_prev.shape[0]):
+        xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
+        xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
+        out[i] = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
+
+
+@nb.njit(**JIT, parallel=True)
 def residuals_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
-    """(B, N) Sampson errors (px) of B hypotheses on all N correspondences."""
+    """(B, N) Sampson errors (px) of B hypotheses on all N correspondences (hypotheses over
+    the cores, as :func:`lm_batch`)."""
     B = R.shape[0]
-    N = x_prev.shape[0]
-    e = np.empty((B, N))
-    for b in range(B):
-        Rr = _rows(R[b])
-        tt = (t[b, 0], t[b, 1], t[b, 2])
-        V = _velocities(vel[b])
-        for i in range(N):
-            xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
-            xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-            e[b, i] = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
+    e = np.empty((B, x_prev.shape[0]))
+    for b in nb.prange(B):
+        _residuals_one(R[b], t[b], vel[b], x_prev, x_curr, s_prev, s_curr, cam, e[b])
     return e
 
 
