@@ -367,6 +367,17 @@ def _lm_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lam
     return R, t, vel, cost, it
 
 
+@nb.njit(**JIT)
+def _lm_into(b, R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lambda_init,
+             rel_tol, robust, p2, mu, basis, limits, anchor, R_out, t_out, vel_out, cost,
+             iters):  # fmt: skip
+    """:func:`_lm_one` of hypothesis ``b``, into row ``b`` of the outputs."""
+    Rb, tb, vb, cb, ib = _lm_one(R[b].copy(), t[b].copy(), vel[b].copy(), x_prev, x_curr,
+                                 s_prev, s_curr, cam, idx[b], iterations, lambda_init, rel_tol,
+                                 robust, p2, mu[b], basis, limits, anchor[b])
+    R_out[b], t_out[b], vel_out[b], cost[b], iters[b] = Rb, tb, vb, cb, ib
+
+
 @nb.njit(**JIT, parallel=True)
 def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lambda_init,
              rel_tol, robust, p2, mu, basis, limits, anchor):
@@ -379,16 +390,26 @@ def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, la
     (B,) and iterations (B,).
     """
     B = R.shape[0]
-    R_out = np.empty_like(R)
-    t_out = np.empty_like(t)
-    vel_out = np.empty_like(vel)
-    cost = np.empty(B)
-    iters = np.empty(B, np.int64)
+    R_out, t_out, vel_out = np.empty_like(R), np.empty_like(t), np.empty_like(vel)
+    cost, iters = np.empty(B), np.empty(B, np.int64)
     for b in nb.prange(B):  # hypotheses are independent: over the cores, same result
-        Rb, tb, vb, cb, ib = _lm_one(R[b].copy(), t[b].copy(), vel[b].copy(), x_prev, x_curr,
-                                     s_prev, s_curr, cam, idx[b], iterations, lambda_init,
-                                     rel_tol, robust, p2, mu[b], basis, limits, anchor[b])
-        R_out[b], t_out[b], vel_out[b], cost[b], iters[b] = Rb, tb, vb, cb, ib
+        _lm_into(b, R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations,
+                 lambda_init, rel_tol, robust, p2, mu, basis, limits, anchor, R_out, t_out,
+                 vel_out, cost, iters)  # fmt: skip
+    return R_out, t_out, vel_out, cost, iters
+
+
+@nb.njit(**JIT)
+def lm_serial(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, lambda_init,
+              rel_tol, robust, p2, mu, basis, limits, anchor):
+    """:func:`lm_batch` on the calling thread (the same results)."""
+    B = R.shape[0]
+    R_out, t_out, vel_out = np.empty_like(R), np.empty_like(t), np.empty_like(vel)
+    cost, iters = np.empty(B), np.empty(B, np.int64)
+    for b in range(B):
+        _lm_into(b, R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations,
+                 lambda_init, rel_tol, robust, p2, mu, basis, limits, anchor, R_out, t_out,
+                 vel_out, cost, iters)  # fmt: skip
     return R_out, t_out, vel_out, cost, iters
 
 
@@ -408,9 +429,17 @@ def _residuals_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, out):
 def residuals_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
     """(B, N) Sampson errors (px) of B hypotheses on all N correspondences (hypotheses over
     the cores, as :func:`lm_batch`)."""
-    B = R.shape[0]
-    e = np.empty((B, x_prev.shape[0]))
-    for b in nb.prange(B):
+    e = np.empty((R.shape[0], x_prev.shape[0]))
+    for b in nb.prange(R.shape[0]):
+        _residuals_one(R[b], t[b], vel[b], x_prev, x_curr, s_prev, s_curr, cam, e[b])
+    return e
+
+
+@nb.njit(**JIT)
+def residuals_serial(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam):
+    """:func:`residuals_batch` on the calling thread."""
+    e = np.empty((R.shape[0], x_prev.shape[0]))
+    for b in range(R.shape[0]):
         _residuals_one(R[b], t[b], vel[b], x_prev, x_curr, s_prev, s_curr, cam, e[b])
     return e
 

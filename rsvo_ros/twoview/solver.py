@@ -18,6 +18,11 @@ from rsvo_ros.twoview.state import NUM_PARAMS, Correspondences, RSBatch, tangent
 
 MAX_STEP_ROTATION_RAD = 0.05  # largest rotation change of one LM step (trust region)
 MAX_STEP_TRANSLATION_RAD = 0.2  # largest change of the translation direction of one step
+# Batches of fewer hypotheses run on the calling thread: a parallel loop waits for the other
+# core's worker, and where that core is busy (the GS starts' OpenCV fits, the node's other
+# thread) waking it cost more than its half of one hypothesis (data_scale's residuals on 500
+# points: 1.3 ms parallel against 0.2 ms serial, README "Speed")
+PARALLEL_MIN_BATCH = 2
 
 
 def cauchy_cost(e: np.ndarray, scale: float | None) -> np.ndarray:
@@ -44,7 +49,9 @@ def residuals(state: RSBatch, corr: Correspondences) -> np.ndarray:
     """(B, N) Sampson errors (px) of every hypothesis on every correspondence (compiled
     :func:`rsvo_ros.twoview.kernels.residuals_batch`; equal to
     :func:`rsvo_ros.twoview.reference.sampson_residuals`)."""
-    return kernels.residuals_batch(*_kernel_args(state, corr), _cam(corr))
+    run = kernels.residuals_batch if len(state) >= PARALLEL_MIN_BATCH else \
+        kernels.residuals_serial
+    return run(*_kernel_args(state, corr), _cam(corr))
 
 
 def depths(state: RSBatch, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
@@ -104,7 +111,8 @@ def levenberg_marquardt(
         if limits.anchor_R is not None:
             bounds[4] = limits.max_rotation_change
             anchor = np.broadcast_to(limits.anchor_R, state.R.shape)
-    R, t, vel, cost, iters = kernels.lm_batch(
+    run = kernels.lm_batch if B >= PARALLEL_MIN_BATCH else kernels.lm_serial
+    R, t, vel, cost, iters = run(
         *_kernel_args(state, corr), _cam(corr), idx, int(iterations),
         float(lambda_init), float(rel_tol),
         0.0 if robust_scale is None else float(robust_scale), p2, mu, basis, bounds,
