@@ -218,6 +218,46 @@ def format_table(summary: dict, levels) -> str:
     return "\n".join(lines)
 
 
+# the README's Table 1: (metric, label, scale, format, methods); "paper MRSVO" is the paper's
+MARKDOWN_ROWS = (
+    ("rot_err_deg", "rotation (deg)", 1, ".3f",
+     ("MVO (ours)", "GS OpenCV USAC_MAGSAC", "RS (ours)", "paper MRSVO")),
+    ("trans_err_m", "translation (m)", 1, ".3f",
+     ("MVO (ours)", "GS OpenCV USAC_MAGSAC", "RS (ours)", "paper MRSVO")),
+    ("inlier_ratio", "inlier ratio (%)", 100, ".1f", ("RS (ours)", "paper MRSVO")),
+    ("time_ms", "time / pair, median (ms)", 1, ".1f", ("RS (ours)", "GS OpenCV USAC_MAGSAC")),
+)  # fmt: skip
+NOISE_LABELS = {"none": "none", "gaussian": "Gaussian 1 px", "laplacian": "Laplacian 1 px"}
+
+
+def format_markdown(summary: dict, levels) -> str:
+    """The README's Table 1 (means; times as medians) as a markdown table: our methods and
+    the paper's MRSVO per noise type and metric, one column per level."""
+    lines = ["| noise | metric | method | " + " | ".join(f"L{lv}" for lv in levels) + " |",
+             "|---|---|---|" + "---|" * len(levels)]
+    for noise in NOISE_TYPES:
+        if noise not in summary:
+            continue
+        first_metric = True
+        for metric, label, scale, spec, methods in MARKDOWN_ROWS:
+            for i, method in enumerate(methods):
+                if method.startswith("paper "):
+                    key = {"rot_err_deg": "rot", "trans_err_m": "trans",
+                           "inlier_ratio": "inlier"}[metric]  # fmt: skip
+                    vals = [PAPER_TABLE1[noise][method[6:]][key][lv - 1] for lv in levels]
+                else:
+                    stat = "median" if metric == "time_ms" else "mean"
+                    by_level = summary[noise].get(method, {})
+                    vals = [by_level.get(str(lv), {}).get(metric, {}).get(stat) for lv in levels]
+                    vals = [None if v is None else v * scale for v in vals]
+                name = f"**{method}**" if method == "RS (ours)" else method
+                cells = " | ".join("-" if v is None else format(v, spec) for v in vals)
+                lines.append(f"| {NOISE_LABELS[noise] if first_metric else ''} | "
+                             f"{label if i == 0 else ''} | {name} | {cells} |")
+                first_metric = False
+    return "\n".join(lines)
+
+
 def box_plot(records: list[TrialRecord], levels, path: Path) -> None:
     """Box plots like the paper's Fig. 4: rotation and translation error per level, one panel
     per noise type, MVO in red and our RS estimator in black (OpenCV GS in blue)."""
@@ -341,10 +381,12 @@ def main(argv: list[str] | None = None) -> int:
     with open(args.output / "bench.json", "w") as f:
         json.dump({"meta": meta, "summary": summary, "paper_table1": PAPER_TABLE1,
                    "records": [asdict(r) for r in records]}, f, indent=1)  # fmt: skip
+    (args.output / "bench.md").write_text(format_markdown(summary, levels) + "\n")
     box_plot(records, levels, args.output / "bench_boxplot.png")
     print(format_table(summary, levels))
     print(f"\n{len(records)} estimates in {meta['wall_time_s']:.1f} s; wrote "
-          f"{args.output / 'bench.json'} and {args.output / 'bench_boxplot.png'}")
+          f"{args.output / 'bench.json'}, bench.md (the README's table) and "
+          f"{args.output / 'bench_boxplot.png'}")
     return 0
 
 

@@ -447,7 +447,8 @@ class GSStarts:
     take ~3 ms on one core): the RS distortion makes GS fits depend on the threshold and on
     which rows they see, and at strong distortion any one of them can be several degrees off.
     Fits with ``lm.init_thresholds_px`` on all points and with ``ransac.init_threshold_px`` on
-    three row bands. :meth:`result` waits for them; :meth:`cancel` drops those not started."""
+    three row bands. :meth:`result` collects them, fitting itself those no worker has started
+    (rather than wait idle); :meth:`cancel` drops those not started."""
 
     def __init__(self, corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacOptions,
                  lm: LMOptions, seed: int, min_inliers: int) -> None:
@@ -468,10 +469,19 @@ class GSStarts:
                 t) > 0 else None
 
         pool = _gs_pool()
-        self._futures = [pool.submit(fit, mask, thr) for mask, thr in jobs]
+        self._jobs = [(fit, mask, thr) for mask, thr in jobs]
+        self._futures = [pool.submit(*job) for job in self._jobs]
 
     def result(self) -> list[RSBatch]:
-        return [s for s in (f.result() for f in self._futures) if s is not None]
+        # a fit still waiting for a worker runs here (from the last, while the workers take
+        # the first ones): the same fits, in the caller's time that waiting would have spent
+        done = {}
+        for i in reversed(range(len(self._futures))):
+            if self._futures[i].cancel():
+                fit, mask, thr = self._jobs[i]
+                done[i] = fit(mask, thr)
+        fits = (done[i] if i in done else f.result() for i, f in enumerate(self._futures))
+        return [s for s in fits if s is not None]
 
     def cancel(self) -> None:
         for f in self._futures:

@@ -26,6 +26,14 @@ def test_quick_bench_writes_table_json_and_plot(tmp_path, capsys):
     assert s["RS (ours)"]["1"]["rot_err_deg"]["mean"] < 0.01  # no distortion: exact
     assert (out / "bench_boxplot.png").stat().st_size > 20_000
     assert np.isclose(PAPER_TABLE1["none"]["MRSVO"]["rot"][5], 0.475)
+    # the README's table: a header, a separator, per noise 4 + 4 + 2 + 2 rows, levels 1 and 6
+    md = (out / "bench.md").read_text().splitlines()
+    assert md[0] == "| noise | metric | method | L1 | L6 |" and len(md) == 2 + 2 * 12
+    assert md[2].startswith("| none | rotation (deg) | MVO (ours) |")
+    mean_l6 = s["RS (ours)"]["6"]["rot_err_deg"]["mean"]
+    assert md[4].startswith("|  |  | **RS (ours)** |")  # noise-free RS rotation means
+    assert md[4].rstrip(" |").endswith(f"{mean_l6:.3f}")
+    assert md[14].startswith("| Gaussian 1 px | rotation (deg) | MVO (ours) |")
 
 
 def test_bad_trials_exit_2(tmp_path):
