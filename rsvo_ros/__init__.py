@@ -25,6 +25,7 @@ def limit_blas_threads() -> None:
     environment sets ``OPENBLAS_NUM_THREADS``. Every matrix they hand to BLAS or LAPACK is
     small (3 x 3 to 17 x 17, or batches of them), and OpenBLAS's threads spin for a while after
     each call, taking the cores from the solver's own (numba, OpenCV): in ``rsvo_bench`` the
-    MVO baseline's left the RS estimate that follows it 1.12x slower (README, "Speed"). Takes
-    effect only before numpy is first imported: the programs' packages call it on import."""
+    MVO baseline's left the RS estimate that follows it 1.12x slower (docs/notebook.md, "The
+    estimator's speed"). Takes effect only before numpy is first imported: the programs'
+    packages call it on import."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

@@ -54,8 +54,8 @@ class MapOptions:
     # (zero-mean prior of this std, rad/s^2; a 10 Hz shake of 1 rad/s). 0: held at zero, the
     # paper's constant velocity within a frame. On 88 synthetic bags the acceleration made
     # every group's per-frame rotation error smaller (0.57-0.88x) and the walks' ATE too
-    # (0.58-0.92x), for vehicles' ATE 0.96-1.06x (README, "Angular acceleration during the
-    # readout")
+    # (0.58-0.92x), for vehicles' ATE 0.96-1.06x (docs/notebook.md, "Angular acceleration
+    # during the readout")
     prior_acc_rad_s2: float = ACCELERATION_STD_RAD_S2
 
 

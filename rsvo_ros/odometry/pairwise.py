@@ -30,11 +30,12 @@ Short baselines (``ROTATION_ONLY_PARALLAX_PX``): a pair whose tracks a turning c
 to within a pixel or so (a hand-held walk's consecutive frames) is posed by that camera's
 rotation (odometry/rotation.py), the baseline direction that makes each track's rays coplanar
 with it, and the last baseline: the pair estimator's rotation there was 1-2.7 deg per frame
-off, the turning camera's 0.1-0.4 deg (README, "Short baselines"). After such a pair the next
-one is first fitted as a turning camera from the last motion and turn rate, and the pair
-estimator runs only where that leaves more than the limit (:meth:`PairwiseChain._turning_first`:
-a walk's first frames then cost a third of the time; a pure rotation that the pair estimator
-would hold for want of parallax is posed as the turn it is).
+off, the turning camera's 0.1-0.4 deg (docs/notebook.md, "Short baselines"). After such a
+pair the next one is first fitted as a turning camera from the last motion and turn rate, and
+the pair estimator runs only where that leaves more than the limit
+(:meth:`PairwiseChain._turning_first`: a walk's first frames then cost a third of the time; a
+pure rotation that the pair estimator would hold for want of parallax is posed as the turn it
+is).
 
 Scale: the first pair's baseline is ``initial_scale``; each later pair's ``|t|`` makes the
 depths of the points it shares with the previous pair agree (a line fitted to their inverse
@@ -74,19 +75,18 @@ ROTATION_ONLY_PARALLAX_PX = 3.0
 # under the limit had 1.1-1.7x; a vehicle's 2-3x is its translation, and the second fit costs
 # about 3 ms)
 ACCELERATION_FIT_UP_TO = 2.0
-# A pair estimate whose rotation std (its covariance) is over this many degrees is replaced by
-# a turning camera's fit at any translation parallax: the first pairs of a shaken RS vehicle
-# (12-30 px of parallax, over the turning camera's limit) had 2-7 deg of rotation error with
-# a 3.5 deg std, where a rotation-only fit is within 1.6 deg (README, "Where the vehicles' ATE
-# now comes from"). Such a pair's scale is the last baseline (no depths), so a chain that runs
-# for the whole sequence (the pairwise backend) takes fewer of them than the window's
-# bootstrap, whose map measures the scale after 2-6 frames. Chosen among 1.0, 0.5, 0.3, 0.2
-# and 0.01 on the vehicle table and the fresh vehicles (33 bags; geometric means against the
-# previous rule, 1.0 with the direction from the small-residual tracks only): window ATE
-# 0.88 / 0.84 / 0.85 / 0.88 and RPE 0.83 / 0.73 / 0.71 / 0.66 for 0.5 / 0.3 / 0.2 / 0.01 (bags
-# worse by over 20 %: 0 / 1 / 1 / 5); pairwise backend ATE 1.03 / 1.19 (vehicle table) and
-# 0.86 / 0.94 (fresh) for 0.5 / 0.3, RPE 0.85 / 0.77 and 0.76 / 0.67. Then checked on the
-# held-out vehicles. 0: never
+# A pair estimate whose rotation std (its covariance) is over this many degrees is replaced by a
+# turning camera's fit at any translation parallax: the first pairs of a shaken RS vehicle (12-30
+# px of parallax, over the turning camera's limit) had 2-7 deg of rotation error with a 3.5 deg
+# std, where a rotation-only fit is within 1.6 deg (docs/notebook.md, "Where the vehicles' ATE now
+# comes from"). Such a pair's scale is the last baseline (no depths), so a chain that runs for the
+# whole sequence (the pairwise backend) takes fewer of them than the window's bootstrap, whose map
+# measures the scale after 2-6 frames. Chosen among 1.0, 0.5, 0.3, 0.2 and 0.01 on the vehicle
+# table and the fresh vehicles (33 bags; geometric means against the previous rule, 1.0 with the
+# direction from the small-residual tracks only): window ATE 0.88 / 0.84 / 0.85 / 0.88 and RPE 0.83
+# / 0.73 / 0.71 / 0.66 for 0.5 / 0.3 / 0.2 / 0.01 (bags worse by over 20 %: 0 / 1 / 1 / 5);
+# pairwise backend ATE 1.03 / 1.19 (vehicle table) and 0.86 / 0.94 (fresh) for 0.5 / 0.3, RPE 0.85
+# / 0.77 and 0.76 / 0.67. Then checked on the held-out vehicles. 0: never
 UNCERTAIN_PAIR_ROTATION_DEG = 0.5  # the pairwise backend
 # ... and where the direction given that rotation puts under this share of the tracks in front
 # of both cameras, the chain keeps the last pair's direction. On the 33 vehicles' 34 uncertain
@@ -94,12 +94,12 @@ UNCERTAIN_PAIR_ROTATION_DEG = 0.5  # the pairwise backend
 # 0.58-0.78 and 91 deg once at 0.82, 3 deg once at 0.74 (README)
 UNCERTAIN_MIN_FRONT = 0.8
 BOOTSTRAP_UNCERTAIN_ROTATION_DEG = 0.3  # the window backend's chain (until a map; after a loss)
-# row0_turn_rate's share of the change of the fitted rates. Measured on rendered walks with
-# 8-15 Hz shake (README, "Row 0 of a turning camera"): with the renderer's exact middle-row poses
-# and rates the row-0 rotations were 0.77 deg per frame off for an interpolation between the
-# middle rows (share 0), 0.20 deg at 1/2, 0.135 deg at 0.4 and 0.23 deg at 0.3; with the
-# chain's fitted rates (their difference is noisy) the walks' RPE was least at 0.3 (0.86x of
-# 1/2 on the tuning walks; 0.15: 0.99x, 0.4: 0.89x, 0.7: 1.33x)
+# row0_turn_rate's share of the change of the fitted rates. Measured on rendered walks with 8-15 Hz
+# shake (docs/notebook.md, "Row 0 of a turning camera"): with the renderer's exact middle-row poses
+# and rates the row-0 rotations were 0.77 deg per frame off for an interpolation between the middle
+# rows (share 0), 0.20 deg at 1/2, 0.135 deg at 0.4 and 0.23 deg at 0.3; with the chain's fitted
+# rates (their difference is noisy) the walks' RPE was least at 0.3 (0.86x of 1/2 on the tuning
+# walks; 0.15: 0.99x, 0.4: 0.89x, 0.7: 1.33x)
 ROW0_RATE_CHANGE_SHARE = 0.3
 DEFAULT_POSITION_VARIANCE = 1e-2  # m^2 per pair when a fit gives no usable covariance
 

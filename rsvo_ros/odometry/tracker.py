@@ -20,7 +20,8 @@ DEFAULT_MAX_FEATURES = 500  # paper, Sec. 7.1: "limited up to 500 with a bucketi
 # A 21-px KLT window on an image that grows (forward motion) lets each track lag behind the
 # expansion by a fraction of a pixel per frame; along a track this adds up, and the window
 # backend's vehicles shrank by about 2.4 %/s. Refining with an 11-px window at full resolution
-# keeps the pyramid's reach and removes most of it (README, "The vehicles' scale shrinks")
+# keeps the pyramid's reach and removes most of it (docs/notebook.md, "The vehicles' scale
+# shrinks")
 REFINE_WINDOW_PX = 11
 MAX_REFINE_WINDOW_PX = 51
 
@@ -62,7 +63,8 @@ class TrackerOptions:
     # after a gap (an image more than GAP_RATIO of the last interval later: a frame the live
     # node dropped), start KLT both ways from each track's last image motion scaled to the
     # gap (new corners: the median of it) instead of from no motion: in a fast pan the
-    # image moves past KLT's reach over two intervals (README, "Tracking at camera rate").
+    # image moves past KLT's reach over two intervals (docs/notebook.md, "Tracking at camera
+    # rate").
     # Needs the images' stamps (track(img, stamp_ns)). Not between consecutive frames: there
     # the last motion, which shake reverses every few frames, was a worse start than none
     # (A/B: 300-frame walks 1.5-4.5x worse ATE)

@@ -87,7 +87,7 @@ class WindowOptions:
     # ... and on its position, centred on the constant-velocity prediction with a std of this
     # many times the predicted step (0: none). One frame's points fix its position along the
     # view poorly: without it, tracked frames of strong-shake walks jumped 10-40 cm back and
-    # forth around a 3 cm step (README, "Tracking's position prior")
+    # forth around a 3 cm step (docs/notebook.md, "Tracking's position prior")
     prior_p_step: float = 1.0
     lost_frames_to_reset: int = 5  # held frames in a row before the map starts over
     pair_prior_rotation_rad: float = 0.02  # the pair estimator's rotation prior (see __init__)

@@ -47,7 +47,7 @@ RS_MODES = ("fast", "paper")
 MIN_POINTS = {"gs": 5, "mvo": 8, "rs": 20}  # 5-point, 8-point, the paper's 20-point samples
 # the GS model and the GS fit the RS model is weighed against: OpenCV's USAC with MAGSAC++
 # scoring and local optimisation (on real pairs 0.08 deg mean rotation error where plain
-# RANSAC gave 0.42; README, "Real image pairs")
+# RANSAC gave 0.42; README, "Real pairs and realistic pairs")
 GS_METHOD = cv2.USAC_MAGSAC
 PARALLAX_TO_NOISE = 3.0  # parallax below this many times the GS fit's noise: no translation
 

@@ -40,7 +40,7 @@ class LMOptions:
     rel_tol: float = 1e-7  # stop when a hypothesis improves by less than this fraction
     # ... in the refinements on all points that choose the candidate the polish (rel_tol)
     # finishes: 1e-7 took 18 iterations per candidate on the bench's pairs, 1e-4 about half,
-    # with the same errors (README, "Speed")
+    # with the same errors (docs/notebook.md, "The estimator's speed")
     refine_rel_tol: float = 1e-4
     robust_scale_px: float = 2.0  # Cauchy loss scale of the all-points refinement
     max_angular_velocity: float = 5.0  # rad/s (286 deg/s): bound of the search
