@@ -10,6 +10,7 @@ seconds of it (``R Exp(s w + s^2/2 a)``, ``p + R s v``; see
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,6 +67,10 @@ class Observations:
     s: np.ndarray
     px: np.ndarray
     rows: np.ndarray
+    # ORB descriptors (n, 32) and which points have one (n,), computed on the first call
+    # (the pipeline sets it with its image; odometry/relocalize.py); None: not available
+    describe: Callable[[], tuple[np.ndarray, np.ndarray]] | None = field(
+        default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -86,6 +91,7 @@ class KeyFrame:
     rejected: set = field(default_factory=set)  # track ids whose observation here is an outlier
     before: FrameState | None = None  # the tracked frames just before and after (for the
     after: FrameState | None = None  # velocity prior of the window: the motion between them)
+    descriptors: tuple[np.ndarray, np.ndarray] | None = None  # of obs (re-finding the map)
 
     def trajectory_velocity(self) -> tuple[np.ndarray, np.ndarray] | None:
         """``(w, v)`` of a constant motion through the neighbouring frames (central difference,

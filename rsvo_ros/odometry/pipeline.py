@@ -15,6 +15,7 @@ Poses are ``T_world_camera`` of each frame's row-0 camera (CONTRACTS.md).
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -35,6 +36,7 @@ from rsvo_ros.odometry.pairwise import (
     UNCERTAIN_PAIR_ROTATION_DEG,
     PairwiseChain,
 )
+from rsvo_ros.odometry.relocalize import describe
 from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.odometry.window import (
     WindowOdometry,
@@ -240,7 +242,7 @@ class OdometryPipeline:
         pair = self.tracker.track(gray, stamp_ns)
         if self.options.backend == "window":
             interval = None if prev_stamp is None else (stamp_ns - prev_stamp) * 1e-9
-            return self._process_window(stamp_ns, pair, interval, idx, result)
+            return self._process_window(stamp_ns, gray, pair, interval, idx, result)
         if not self._started:
             self._started = True
             return result("first", "first frame: trajectory origin",
@@ -363,18 +365,22 @@ class OdometryPipeline:
             return []
         return [(stamp, self.T_odom_world @ T) for stamp, T in self.window.keyframe_poses(last)]
 
-    def observations(self) -> Observations:
-        """Every feature of the last image as the window backend takes them."""
+    def observations(self, gray: np.ndarray | None = None) -> Observations:
+        """Every feature of the last image as the window backend takes them (with ``gray``,
+        the image, their ORB descriptors on demand: ``Observations.describe``)."""
         ids, raw = self.tracker.current()
         px = undistort_points(raw, self.K, self.D)
         x = (px - self.K[:2, 2]) / np.array([self.K[0, 0], self.K[1, 1]])
-        return Observations(ids, x, self.window.row_time(raw[:, 1]), px, raw[:, 1])
+        obs = Observations(ids, x, self.window.row_time(raw[:, 1]), px, raw[:, 1])
+        if gray is not None:
+            obs.describe = functools.cache(functools.partial(describe, gray, raw))
+        return obs
 
-    def _process_window(self, stamp_ns: int, pair, interval: float | None, idx: int,
-                        result) -> FrameResult:  # fmt: skip
+    def _process_window(self, stamp_ns: int, gray: np.ndarray, pair, interval: float | None,
+                        idx: int, result) -> FrameResult:  # fmt: skip
         """The window backend; while its map initialises, the pairwise chain poses the frames
         and the map starts in the chain's world and scale."""
-        obs = self.observations()
+        obs = self.observations(gray)
         step = None
         bootstrap = self.options.window.pairwise_bootstrap and self.window.initialising
         if bootstrap and interval is not None and len(pair.ids) >= self.options.min_tracks:

@@ -37,7 +37,8 @@ from rsvo_ros.odometry.frame import (
     extrapolate,
     interval_velocity,
 )
-from rsvo_ros.odometry.local_map import BAReport, LocalMap, MapOptions, acc_prior_p2
+from rsvo_ros.odometry.local_map import BAReport, Landmark, LocalMap, MapOptions, acc_prior_p2
+from rsvo_ros.odometry.relocalize import LandmarkMemory, guided_matches, match_memory
 from rsvo_ros.twoview import LMOptions, RansacOptions, estimate_relative_pose
 from rsvo_ros.twoview.essential import rotation_only_residual_px
 from rsvo_ros.twoview.state import Correspondences
@@ -49,6 +50,7 @@ FOCAL_REF_PX = 1000.0  # pixel thresholds below are given at this focal length a
 # translation parallax (the first map's parallax is not rotation-compensated: a walk's head bob
 # reaches 80 px of it in about 20 frames, translation alone in 100 or more)
 REINIT_PARALLAX_FACTOR = 2.0
+REFOUND_REASON = "re-found the map"  # a frame's reason where descriptors found the map again
 
 
 @dataclass
@@ -107,6 +109,25 @@ class WindowOptions:
     # refined keyframe states kept for the keyframe path (None: all, as the replay's
     # keyframes.tum needs; a live node keeps its path length, so memory stays flat)
     keyframe_log_max: int | None = None
+    # Re-finding the map (odometry/relocalize.py): the landmarks the window placed are
+    # remembered (world point, ORB descriptor; the newest reloc_memory); a frame that cannot
+    # be tracked, and the keyframes of a map rebuilt after a loss for reloc_window_s, match
+    # their tracks against that memory, and with at least reloc_min_inliers inliers of a PnP
+    # (reloc_ransac_px at 1000 px focal) the map starts over from that frame in the old map's
+    # world and scale (0: off). A pose more than reloc_max_rotation_deg off the predicted
+    # rotation is not taken (a false match; a frame's rotation is known well even where its
+    # scale is not)
+    reloc_min_inliers: int = 30
+    reloc_window_s: float = 3.0
+    reloc_memory: int = 5000
+    reloc_ratio: float = 0.8
+    reloc_max_hamming: int = 64
+    reloc_ransac_px: float = 4.0
+    reloc_max_rotation_deg: float = 15.0
+    reloc_guided_px: float = 8.0  # then every remembered point projected this near a track
+    # ... and, re-finding the map it is in (not one rebuilt after a loss), a position within
+    # this many of the usual steps of the prediction
+    reloc_max_jump_steps: float = 3.0
 
 
 @dataclass
@@ -194,6 +215,11 @@ class WindowOdometry:
         self._picked: list[tuple[tuple[FrameState, FrameState], BAReport]] = []
         self._lock = threading.Lock()  # one mapping at a time; tracking reads atomic snapshots
         self.keyframe_log: dict[int, FrameState] = {}  # stamp -> refined keyframe state
+        self.memory = LandmarkMemory(self.options.reloc_memory)  # landmarks to re-find
+        # a map rebuilt after a loss is provisional until this stamp: its keyframes try to
+        # re-find the old map, and it does not write into the memory
+        self._provisional_until: int | None = None
+        self.relocalizations = 0
 
     # ------------------------------------------------------------------ helpers
 
@@ -213,6 +239,8 @@ class WindowOdometry:
                       prior: tuple[np.ndarray, np.ndarray] | None) -> KeyFrame:  # fmt: skip
         kf = KeyFrame(self._next_kf, state.copy(), obs, prior)
         self._next_kf += 1
+        if self.options.reloc_min_inliers > 0 and obs.describe is not None:
+            kf.descriptors = obs.describe()
         return kf
 
     def _pair(self, a: Observations, b: Observations, dt: float,
@@ -477,6 +505,10 @@ class WindowOdometry:
         self._inliers.append(inliers)
         mapping_busy = self._mapper is not None and self._mapper.busy
         if not mapping_busy and self._needs_keyframe(last_kf, obs, state, inliers):
+            if self._provisional(stamp_ns):
+                found = self._relocalize(stamp_ns, obs, state, exclude=ids)
+                if found is not None:
+                    return found
             kf = self._new_keyframe(state, obs, (w.copy(), v.copy()))
             kf.before = self._last.copy()
             kf.rejected.update(int(t) for t in obs.ids[ib][~inl])
@@ -517,6 +549,11 @@ class WindowOdometry:
         if self._mapper is not None:
             self._mapper.wait_idle()  # the pair recovery and a map reset change the map
             self._pick_up_mapping()
+        if self._last is not None:
+            found = self._relocalize(stamp_ns, obs, extrapolate(self._last, self._before,
+                                                                stamp_ns))  # fmt: skip
+            if found is not None:
+                return found
         last_kf = self.map.keyframes[-1] if self.map.keyframes else None
         # a map left with fewer points than tracking needs is not recovered into (its keyframes
         # would be placed by the last speed alone, and it never comes back): it starts over
@@ -536,6 +573,7 @@ class WindowOdometry:
                     self._before, self._last = self._last, state.copy()
                     self._lost = 0
                     self._tracked_at_kf = len(self.map.landmarks)
+                    self._make_provisional(stamp_ns)
                     return WindowResult("posed", "recovered with the pair estimator", state,
                                         inliers=res.num_inliers, keyframe=True, ba=report,
                                         ba_moved=[(before, state.copy())])  # fmt: skip
@@ -547,6 +585,7 @@ class WindowOdometry:
                 held.v = held.v * (usual / speed)  # a diverging last pose must not set it
             self._origin = held
             self.map = self._new_map()
+            self._make_provisional(stamp_ns)
             self._points = (np.zeros(0, np.int64), np.zeros((0, 3)))
             self._last = self._before = None
             self._lost = 0
@@ -597,6 +636,9 @@ class WindowOdometry:
             if self.calibrator is not None and self.map.last_problem is not None:
                 self.calibrator.add_window(self.map.last_problem, self.row_ref)
             points = self.map.points()
+            newest = self.map.keyframes[-1].state.stamp_ns if self.map.keyframes else None
+            if newest is not None and not self._provisional(newest):
+                self._remember(points)
             log = dict(self.keyframe_log)
             log.update({k.state.stamp_ns: k.state.copy() for k in self.map.keyframes})
             cap = self.options.keyframe_log_max
@@ -605,6 +647,106 @@ class WindowOdometry:
             # replaced whole, never changed in place: the viewers read it without waiting
             self.keyframe_log = log
         return report, points
+
+    # ------------------------------------------------------------------ re-finding the map
+
+    def _make_provisional(self, stamp_ns: int) -> None:
+        if self.options.reloc_min_inliers > 0:
+            self._provisional_until = stamp_ns + int(self.options.reloc_window_s * 1e9)
+
+    def _provisional(self, stamp_ns: int) -> bool:
+        until = self._provisional_until
+        return until is not None and stamp_ns < until
+
+    def _remember(self, points: tuple[np.ndarray, np.ndarray]) -> None:
+        """Write the map's landmarks (world points) into the memory, each with the descriptor
+        of the newest keyframe of the window that has one for it."""
+        ids, X = points
+        if self.options.reloc_min_inliers <= 0 or not len(ids):
+            return
+        kf_ids, kf_desc = [], []
+        for kf in self.map.keyframes:  # oldest first: the newest keyframe's descriptor wins
+            if kf.descriptors is not None:
+                d, valid = kf.descriptors
+                kf_ids.append(kf.obs.ids[valid])
+                kf_desc.append(d[valid])
+        if not kf_ids:
+            return
+        all_ids, all_desc = np.concatenate(kf_ids)[::-1], np.concatenate(kf_desc)[::-1]
+        uniq, first = np.unique(all_ids, return_index=True)  # first of the reversed: newest
+        _, i_pts, i_desc = np.intersect1d(ids, uniq, return_indices=True)
+        self.memory.update(ids[i_pts], X[i_pts], all_desc[first[i_desc]])
+
+    def _relocalize(self, stamp_ns: int, obs: Observations, predicted: FrameState,
+                    exclude: np.ndarray | None = None) -> WindowResult | None:  # fmt: skip
+        """Pose the frame against the memory (:func:`~rsvo_ros.odometry.relocalize.
+        match_memory`, then tracking's motion-only RS refinement on the inliers); if it holds,
+        the map starts over from this frame, a keyframe whose landmarks are the points found,
+        in the memory's world and scale. ``exclude``: track ids not to match (the current
+        map's). None where nothing is found."""
+        o = self.options
+        if o.reloc_min_inliers <= 0 or obs.describe is None \
+                or len(self.memory) < o.reloc_min_inliers:  # fmt: skip
+            return None
+        mem = self.memory.snapshot()
+        if exclude is not None and len(exclude):
+            keep = ~np.isin(mem[0], exclude)
+            mem = (mem[0][keep], mem[1][keep], mem[2][keep])
+        desc, valid = obs.describe()
+        found = match_memory(mem, obs.x, desc, valid, self.focal, o.reloc_ratio,
+                             o.reloc_max_hamming, o.reloc_ransac_px * self._px,
+                             o.reloc_min_inliers, self.seed + self._next_kf)  # fmt: skip
+        if found is None:
+            return None
+        turn = np.degrees(np.linalg.norm(so3_log(predicted.R.T @ found.R)))
+        if not turn <= o.reloc_max_rotation_deg:
+            return None
+        found = guided_matches(found, mem, obs.x, desc, valid, self.focal,
+                               o.reloc_guided_px * self._px, o.reloc_max_hamming)  # fmt: skip
+        usual = self._usual_speed()
+        if not self._provisional(stamp_ns) and usual and self._last is not None:
+            # a trusted map (not one rebuilt after a loss) moves the frame by about a step
+            dt = max((stamp_ns - self._last.stamp_ns) * 1e-9, 1e-3)
+            if np.linalg.norm(found.p - predicted.p) > o.reloc_max_jump_steps * usual * dt:
+                return None
+        speed = self._usual_speed() or 0.0
+        sv = max(o.prior_v_rel * speed, o.prior_v_floor)
+        p2 = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2, 0.0], 3)
+        w0, v0 = predicted.w.copy(), np.zeros(3)
+        j = found.obs_idx
+        R, p, w, v, a, res, cost, H = rs_projection.track_frame(
+            found.R, found.p, w0, v0, np.zeros(3), found.X, obs.x[j], obs.s[j], self.focal,
+            o.track_robust_px * self._px, np.concatenate([w0, v0, found.p]), p2,
+            acc_prior_p2(self.map.options.prior_acc_rad_s2), o.track_iterations)  # fmt: skip
+        inl = np.linalg.norm(res, axis=1) < o.track_inlier_px * self._px
+        if inl.sum() < o.reloc_min_inliers or not (np.isfinite(R).all() and np.isfinite(p).all()):
+            return None
+        state = FrameState(stamp_ns, R, p, w, v, a)
+        j, X = j[inl], found.X[inl]
+        R_rows, p_rows = state.row_cameras(obs.s[j])
+        depth = np.einsum("nji,nj->ni", R_rows, X - p_rows)[:, 2]
+        if self._mapper is not None:
+            self._mapper.wait_idle()
+            self._pick_up_mapping()
+        with self._lock:
+            self.map = self._new_map()
+            kf = self._new_keyframe(state, obs, (w.copy(), v.copy()))
+            self.map.add_keyframe(kf)
+            for n, d in zip(j.tolist(), depth.tolist(), strict=True):
+                if d > 0:
+                    self.map.landmarks[int(obs.ids[n])] = Landmark(
+                        kf.id, obs.x[n].copy(), float(obs.s[n]), 1.0 / d)
+            self._points = self.map.points()
+        self._last, self._before = state.copy(), None
+        self._lost = 0
+        self._tracked_at_kf = int(inl.sum())
+        self._provisional_until = None
+        self._ref = self._origin = None
+        self._hints.clear()
+        self.relocalizations += 1
+        return WindowResult("posed", f"{REFOUND_REASON} ({int(inl.sum())} points)", state,
+                            inliers=int(inl.sum()), tracked=len(found.obs_idx), keyframe=True,
+                            hessian=H, sigma2=max(float(np.mean(res[inl] ** 2)) / 2.0, 1e-6))
 
     def _map_options(self) -> MapOptions:
         """The map's options: the given ones; without a readout (a global shutter, or the GS

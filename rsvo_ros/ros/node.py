@@ -34,6 +34,7 @@ from rsvo_ros.core.geometry import pose_inverse
 from rsvo_ros.odometry.pairwise import uncertain_rotation_or_auto
 from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions, warm_up
 from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
+from rsvo_ros.odometry.window import REFOUND_REASON
 from rsvo_ros.ros.convert import (
     COVARIANCE_UNKNOWN,
     POINT_FIELD_FLOAT32,
@@ -89,7 +90,7 @@ class RsvoNode(Node):
         self._camera: tuple | None = None
         self.pipeline: OdometryPipeline | None = None
         self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
-                      "held": 0, "time_resets": 0}  # fmt: skip
+                      "held": 0, "time_resets": 0, "map_refound": 0}  # fmt: skip
         self._bad_kinds: set[str] = set()
         self._recv_times: deque = deque(maxlen=100)
         self._proc_ms: deque = deque(maxlen=100)
@@ -224,6 +225,8 @@ class RsvoNode(Node):
         opts.uncertain_rotation_deg = uncertain_rotation_or_auto(
             float(self.p["uncertain_rotation_deg"]), "parameter uncertain_rotation_deg")
         opts.window.async_mapping = bool(self.p["async_mapping"])
+        if not self.p["refind_map"]:
+            opts.window.reloc_min_inliers = 0
         opts.window.map.prior_acc_rad_s2 = float(self.p["angular_acceleration_std"])
         opts.window.keyframe_log_max = int(self.p["path_max_length"])  # flat memory
         opts.line_delay_auto = self.p["line_delay_mode"] == "auto"
@@ -290,6 +293,8 @@ class RsvoNode(Node):
             return
         if res.status == "held":
             self.stats["held"] += 1
+        if res.reason.startswith(REFOUND_REASON):
+            self.stats["map_refound"] += 1
         self._state = {"initialising": f"initialising: {res.reason}", "tracking": "tracking",
                        "lost": f"lost: {res.reason}"}[res.tracking]  # fmt: skip
         self._tracking = res.tracking

@@ -79,6 +79,10 @@ PARAMETERS = {
     "async_mapping": (True, _bool(
         "Window backend: keyframe insertion and the window bundle adjustment on a background "
         "thread, off the publishing path (false: inline, exactly as rsvo_replay).")),
+    "refind_map": (True, _bool(
+        "Window backend: remember the landmarks with ORB descriptors and, when the map is lost "
+        "(a look around, a stop) or rebuilt after a loss, find it again by matching them (the "
+        "old map's world and scale; false: the pair estimator's recovery only).")),
     "angular_acceleration_std": (ACCELERATION_STD_RAD_S2, _float(
         "Window backend, RS: std (rad/s^2) of the zero-mean prior on each frame's angular "
         "acceleration during its readout (a 10 Hz shake of 1 rad/s); 0 keeps the paper's "

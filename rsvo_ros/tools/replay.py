@@ -41,7 +41,7 @@ from rsvo_ros.odometry.tracker import (
     TrackerOptions,
     refine_window_or_auto,
 )
-from rsvo_ros.odometry.window import WindowOptions
+from rsvo_ros.odometry.window import REFOUND_REASON, WindowOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import (
     POINT_FIELD_FLOAT32,
@@ -222,6 +222,7 @@ def replay(cfg: ReplayConfig) -> dict:
     est: dict[int, np.ndarray] = {}  # the current trajectory (a time reset starts another)
     trajectories: list[dict[int, np.ndarray]] = [est]
     time_resets = 0
+    refound = 0  # frames where the window re-found a lost map by its descriptors
     last_map_ns = None
     images_read = 0
     pipeline: OdometryPipeline | None = None
@@ -320,6 +321,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     skipped[res.reason.split(" (")[0]] += 1
                     continue
                 statuses[res.status] += 1
+                refound += res.reason.startswith(REFOUND_REASON)
                 if res.time_reset:
                     time_resets += 1
                     if last_map_ns is not None:
@@ -390,6 +392,8 @@ def replay(cfg: ReplayConfig) -> dict:
         # time that jumped back (a looped bag): each reset starts a trajectory; "accuracy" is
         # that of the longest one
         "time_resets": time_resets,
+        # the window backend re-found its map (descriptors against the remembered landmarks)
+        "map_refound": refound,
         "trajectories": [{"first_stamp_ns": min(t), "frames": len(t)} for t in trajectories],
     }  # fmt: skip
     if auto and pipeline is not None:
