@@ -146,7 +146,7 @@ def match_memory(memory: tuple[np.ndarray, np.ndarray, np.ndarray], x: np.ndarra
         return None
     inl = inl.ravel()
     R_cw = cv2.Rodrigues(rvec)[0]
-    R_wc = R_cw.T
+    R_wc = np.ascontiguousarray(R_cw.T)
     p_wc = -R_wc @ tvec.ravel()
     if not (np.isfinite(R_wc).all() and np.isfinite(p_wc).all()):
         return None
