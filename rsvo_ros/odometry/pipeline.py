@@ -207,6 +207,9 @@ class OdometryPipeline:
         # BA that moves the current frame updates it, so that the published pose stays
         # continuous while the map (and the keyframe path) take the correction (REP 105's odom)
         self.T_odom_world = np.eye(4)
+        # T_odom_world at the last frame posed in a trusted map (WindowOdometry.in_trusted_map):
+        # a frame that re-finds the map is posed in that map's world, and is published with it
+        self._T_odom_trusted: np.ndarray | None = None
 
     def process(self, stamp_ns: int, gray: np.ndarray) -> FrameResult:
         """One new frame (uint8 gray). Never raises for bad data: returns a skipped result."""
@@ -402,6 +405,10 @@ class OdometryPipeline:
             # first keyframe: 4-14 deg on walks, one frame's jump)
             T_odom_world = rigid_correction(self.window.row0_pose(state), self.chain.T_world_cam)
             self.T_odom_world = T_odom_world if np.isfinite(T_odom_world).all() else np.eye(4)
+        if out.refound and self._T_odom_trusted is not None:
+            # back in the world of the map that was lost: its odometry frame, not the one the
+            # rebuilt map's (or the chain's) continuity gave
+            self.T_odom_world = self._T_odom_trusted.copy()
         if state is not None and out.status == "posed":
             for before, after in [] if started else out.ba_moved:
                 # a BA moved a frame: keep odometry continuous
@@ -410,6 +417,8 @@ class OdometryPipeline:
                     self.T_odom_world = self.T_odom_world @ D
             # held frames keep the last pose
             self.T_world_cam = self.T_odom_world @ self.window.row0_pose(state)
+            if self.window.in_trusted_map(stamp_ns):
+                self._T_odom_trusted = self.T_odom_world.copy()
         if out.status == "posed":
             R = self.T_odom_world[:3, :3]
             J = np.kron(np.eye(2), R)

@@ -161,6 +161,9 @@ class WindowResult:
     # the last frame): its state (before, after); the pipeline keeps its published odometry
     # continuous across that correction
     ba_moved: list[tuple[FrameState, FrameState]] = field(default_factory=list)
+    # the frame was posed against the memory of landmarks: its state is in the world of the
+    # maps that wrote them (:meth:`WindowOdometry.in_trusted_map`), not the current map's
+    refound: bool = False
 
 
 class WindowOdometry:
@@ -319,6 +322,12 @@ class WindowOdometry:
     def initialising(self) -> bool:
         """No map yet (the first frames, or after the map was lost)."""
         return self._last is None
+
+    def in_trusted_map(self, stamp_ns: int) -> bool:
+        """Whether a frame at ``stamp_ns`` is posed in a map that writes into the memory of
+        landmarks (not one rebuilt after a loss, while it is provisional): the world a
+        re-found frame is posed in."""
+        return not self.initialising and not self._provisional(stamp_ns)
 
     def track(self, stamp_ns: int, obs: Observations,
               hint: np.ndarray | None = None) -> WindowResult:  # fmt: skip
@@ -746,7 +755,8 @@ class WindowOdometry:
         self.relocalizations += 1
         return WindowResult("posed", f"{REFOUND_REASON} ({int(inl.sum())} points)", state,
                             inliers=int(inl.sum()), tracked=len(found.obs_idx), keyframe=True,
-                            hessian=H, sigma2=max(float(np.mean(res[inl] ** 2)) / 2.0, 1e-6))
+                            hessian=H, sigma2=max(float(np.mean(res[inl] ** 2)) / 2.0, 1e-6),
+                            refound=True)
 
     def _map_options(self) -> MapOptions:
         """The map's options: the given ones; without a readout (a global shutter, or the GS

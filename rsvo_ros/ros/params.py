@@ -82,7 +82,8 @@ PARAMETERS = {
     "refind_map": (True, _bool(
         "Window backend: remember the landmarks with ORB descriptors and, when the map is lost "
         "(a look around, a stop) or rebuilt after a loss, find it again by matching them (the "
-        "old map's world and scale; false: the pair estimator's recovery only).")),
+        "old map's world and scale: /odom jumps back to where the old map puts the camera; "
+        "false: the pair estimator's recovery only).")),
     "angular_acceleration_std": (ACCELERATION_STD_RAD_S2, _float(
         "Window backend, RS: std (rad/s^2) of the zero-mean prior on each frame's angular "
         "acceleration during its readout (a 10 Hz shake of 1 rad/s); 0 keeps the paper's "
