@@ -803,6 +803,14 @@ def main(argv: list[str] | None = None) -> int:
         if "scale_rate" in acc:
             line += f", scale {acc['scale_rate']['percent_per_s']:+.1f} % per s"
     print(line)
+    events = []
+    if s.get("time_resets"):
+        events.append(f"time went back {s['time_resets']} time(s): the odometry reset and "
+                      f"started {len(s['trajectories'])} trajectories")
+    if s.get("map_refound"):
+        events.append(f"the map was lost and re-found {s['map_refound']} time(s)")
+    if events:
+        print("rsvo_replay: " + "; ".join(events))
     if "line_delay_auto" in s:
         print(f"rsvo_replay: line delay auto: {_describe_estimate(s['line_delay_auto'])}")
     firsts = [h["frames"] for h in s.get("line_delay_auto", {}).get("history", [])

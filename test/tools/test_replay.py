@@ -158,7 +158,7 @@ def test_bad_messages_are_counted_and_the_rest_is_processed(tmp_path):
     assert s["time_resets"] == 0 and len(s["trajectories"]) == 1  # the clock was kept
 
 
-def test_looped_bag_gives_two_trajectories(tmp_path):
+def test_looped_bag_gives_two_trajectories(tmp_path, capsys):
     """The sequence twice with the same stamps (``ros2 bag play -l``): time jumps back, the
     odometry resets and the second trajectory is the first again."""
     cfg = SynthConfig(frames=10, motion="vehicle", severity=1.0, width=320, height=180, seed=1)
@@ -180,6 +180,8 @@ def test_looped_bag_gives_two_trajectories(tmp_path):
                 writer.write(ci, t_log, bagio.serialize(bagio.image_msg(stamp, fr.image)))
     out = tmp_path / "out"
     assert replay_main([str(bag), "--output", str(out), "--no-progress"]) == 0
+    assert "time went back 1 time(s): the odometry reset and started 2 trajectories" in \
+        capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
     assert s["time_resets"] == 1 and s["frames_posed"] == 20
     assert [t["frames"] for t in s["trajectories"]] == [10, 10]
