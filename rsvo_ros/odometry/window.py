@@ -755,7 +755,7 @@ class WindowOdometry:
         self.relocalizations += 1
         return WindowResult("posed", f"{REFOUND_REASON} ({int(inl.sum())} points)", state,
                             inliers=int(inl.sum()), tracked=len(found.obs_idx), keyframe=True,
-                            hessian=H, sigma2=max(float(np.mean(res[inl] ** 2)) / 2.0, 1e-6),
+                            hessian=H, sigma2=max(float(np.mean(res[inl] ** 2)), 1e-6),
                             refound=True)
 
     def _map_options(self) -> MapOptions:
