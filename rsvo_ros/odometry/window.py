@@ -222,7 +222,6 @@ class WindowOdometry:
         # a map rebuilt after a loss is provisional until this stamp: its keyframes try to
         # re-find the old map, and it does not write into the memory
         self._provisional_until: int | None = None
-        self.relocalizations = 0
 
     # ------------------------------------------------------------------ helpers
 
@@ -491,18 +490,11 @@ class WindowOdometry:
         step = float(np.linalg.norm(pred.p - self._last.p))
         sp = o.prior_p_step * step
         pp2 = 1.0 / sp**2 if sp > 0 and np.isfinite(sp) else 0.0
-        p2 = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2, pp2], 3)
-        R, p, w, v, a, res, cost, H = rs_projection.track_frame(
-            pred.R, pred.p, self._last.w, self._last.v, np.zeros(3), X[ia], obs.x[ib],
-            obs.s[ib], self.focal, o.track_robust_px * self._px,
-            np.concatenate([w_cv, v_cv, pred.p]), p2,
-            acc_prior_p2(self.map.options.prior_acc_rad_s2), o.track_iterations)  # fmt: skip
-        err = np.linalg.norm(res, axis=1)
-        inl = err < o.track_inlier_px * self._px
-        if inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)) \
-                or not (np.isfinite(R).all() and np.isfinite(p).all()):  # fmt: skip
+        state, err, inl, H = self._motion_only(
+            stamp_ns, pred.R, pred.p, self._last.w, self._last.v, X[ia], obs.x[ib], obs.s[ib],
+            np.concatenate([w_cv, v_cv, pred.p]), sv, pp2)  # fmt: skip
+        if state is None or inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)):
             return None
-        state = FrameState(stamp_ns, R, p, w, v, a)
         sigma2 = float(np.mean(err[inl] ** 2)) / 2.0
         result = WindowResult("posed", "", state, inliers=int(inl.sum()), tracked=len(ia),
                               hessian=H, sigma2=max(sigma2, 1e-6))  # fmt: skip
@@ -518,7 +510,7 @@ class WindowOdometry:
                 found = self._relocalize(stamp_ns, obs, state, exclude=ids)
                 if found is not None:
                     return found
-            kf = self._new_keyframe(state, obs, (w.copy(), v.copy()))
+            kf = self._new_keyframe(state, obs, (state.w.copy(), state.v.copy()))
             kf.before = self._last.copy()
             kf.rejected.update(int(t) for t in obs.ids[ib][~inl])
             result.keyframe = True
@@ -537,6 +529,25 @@ class WindowOdometry:
         self._speeds.append(float(np.linalg.norm(state.v)))
         self._before, self._last = self._last, state.copy()
         return result
+
+    def _motion_only(self, stamp_ns: int, R0: np.ndarray, p0: np.ndarray, w0: np.ndarray,
+                     v0: np.ndarray, X: np.ndarray, x: np.ndarray, s: np.ndarray,
+                     prior_mean: np.ndarray, v_std: float, p_inv_var: float):  # fmt: skip
+        """Tracking's motion-only RS refinement of a frame against world points ``X`` seen at
+        ``x`` (row times ``s``), from ``(R0, p0, w0, v0)``, with its priors (the rate's
+        ``prior_w_rad_s``, the velocity's ``v_std``, the position's inverse variance
+        ``p_inv_var``; ``prior_mean`` = ``[w, v, p]``). Returns the state (None if not
+        finite), each point's reprojection error (px), its inliers and the Hessian."""
+        o = self.options
+        p2 = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / v_std**2, p_inv_var], 3)
+        R, p, w, v, a, res, cost, H = rs_projection.track_frame(
+            R0, p0, w0, v0, np.zeros(3), X, x, s, self.focal, o.track_robust_px * self._px,
+            prior_mean, p2, acc_prior_p2(self.map.options.prior_acc_rad_s2),
+            o.track_iterations)  # fmt: skip
+        err = np.linalg.norm(res, axis=1)
+        inl = err < o.track_inlier_px * self._px
+        finite = np.isfinite(R).all() and np.isfinite(p).all()
+        return (FrameState(stamp_ns, R, p, w, v, a) if finite else None), err, inl, H
 
     def _usual_speed(self) -> float | None:
         """Median speed (map units/s) of the last tracked frames, None before any."""
@@ -718,19 +729,15 @@ class WindowOdometry:
             dt = max((stamp_ns - self._last.stamp_ns) * 1e-9, 1e-3)
             if np.linalg.norm(found.p - predicted.p) > o.reloc_max_jump_steps * usual * dt:
                 return None
-        speed = self._usual_speed() or 0.0
-        sv = max(o.prior_v_rel * speed, o.prior_v_floor)
-        p2 = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2, 0.0], 3)
+        sv = max(o.prior_v_rel * (usual or 0.0), o.prior_v_floor)
         w0, v0 = predicted.w.copy(), np.zeros(3)
         j = found.obs_idx
-        R, p, w, v, a, res, cost, H = rs_projection.track_frame(
-            found.R, found.p, w0, v0, np.zeros(3), found.X, obs.x[j], obs.s[j], self.focal,
-            o.track_robust_px * self._px, np.concatenate([w0, v0, found.p]), p2,
-            acc_prior_p2(self.map.options.prior_acc_rad_s2), o.track_iterations)  # fmt: skip
-        inl = np.linalg.norm(res, axis=1) < o.track_inlier_px * self._px
-        if inl.sum() < o.reloc_min_inliers or not (np.isfinite(R).all() and np.isfinite(p).all()):
+        state, err, inl, H = self._motion_only(
+            stamp_ns, found.R, found.p, w0, v0, found.X, obs.x[j], obs.s[j],
+            np.concatenate([w0, v0, found.p]), sv, 0.0)  # fmt: skip
+        if state is None or inl.sum() < o.reloc_min_inliers:
             return None
-        state = FrameState(stamp_ns, R, p, w, v, a)
+        sigma2 = float(np.mean(err[inl] ** 2)) / 2.0
         j, X = j[inl], found.X[inl]
         R_rows, p_rows = state.row_cameras(obs.s[j])
         depth = np.einsum("nji,nj->ni", R_rows, X - p_rows)[:, 2]
@@ -739,7 +746,7 @@ class WindowOdometry:
             self._pick_up_mapping()
         with self._lock:
             self.map = self._new_map()
-            kf = self._new_keyframe(state, obs, (w.copy(), v.copy()))
+            kf = self._new_keyframe(state, obs, (state.w.copy(), state.v.copy()))
             self.map.add_keyframe(kf)
             for n, d in zip(j.tolist(), depth.tolist(), strict=True):
                 if d > 0:
@@ -752,11 +759,9 @@ class WindowOdometry:
         self._provisional_until = None
         self._ref = self._origin = None
         self._hints.clear()
-        self.relocalizations += 1
         return WindowResult("posed", f"{REFOUND_REASON} ({int(inl.sum())} points)", state,
                             inliers=int(inl.sum()), tracked=len(found.obs_idx), keyframe=True,
-                            hessian=H, sigma2=max(float(np.mean(res[inl] ** 2)), 1e-6),
-                            refound=True)
+                            hessian=H, sigma2=max(sigma2, 1e-6), refound=True)
 
     def _map_options(self) -> MapOptions:
         """The map's options: the given ones; without a readout (a global shutter, or the GS
