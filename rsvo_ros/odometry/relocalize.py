@@ -102,12 +102,13 @@ class LandmarkMemory:
 class Match:
     """A frame posed against the memory: its reference-row camera ``R``, ``p`` (world from
     camera, a global-shutter PnP), and the frame's observations ``obs_idx`` (m,) that matched
-    the memory's world points ``X`` (m, 3) as PnP inliers."""
+    the memory's rows ``mem_idx`` (m,), world points ``X`` (m, 3), as PnP inliers."""
 
     R: np.ndarray
     p: np.ndarray
     obs_idx: np.ndarray
     X: np.ndarray
+    mem_idx: np.ndarray
 
 
 def match_memory(memory: tuple[np.ndarray, np.ndarray, np.ndarray], x: np.ndarray,
@@ -150,7 +151,7 @@ def match_memory(memory: tuple[np.ndarray, np.ndarray, np.ndarray], x: np.ndarra
     p_wc = -R_wc @ tvec.ravel()
     if not (np.isfinite(R_wc).all() and np.isfinite(p_wc).all()):
         return None
-    return Match(R_wc, p_wc, obs_idx[inl], X_mem[mem_idx[inl]])
+    return Match(R_wc, p_wc, obs_idx[inl], X_mem[mem_idx[inl]], mem_idx[inl])
 
 
 def guided_matches(found: Match, memory: tuple[np.ndarray, np.ndarray, np.ndarray],
@@ -168,8 +169,7 @@ def guided_matches(found: Match, memory: tuple[np.ndarray, np.ndarray, np.ndarra
     taken_obs = np.zeros(len(x), bool)
     taken_obs[found.obs_idx] = True
     in_found = np.zeros(len(X_mem), bool)
-    for X in found.X:  # the memory rows already matched (their world points are equal)
-        in_found |= np.all(X_mem == X, axis=1)
+    in_found[found.mem_idx] = True
     cand = np.flatnonzero(front & ~in_found)
     free = np.flatnonzero(valid & ~taken_obs)
     if not len(cand) or not len(free):
@@ -195,5 +195,7 @@ def guided_matches(found: Match, memory: tuple[np.ndarray, np.ndarray, np.ndarra
         add_mem.append(cand[c])
     if not add_obs:
         return found
+    add_mem = np.array(add_mem, np.int64)
     return Match(found.R, found.p, np.concatenate([found.obs_idx, np.array(add_obs, np.int64)]),
-                 np.concatenate([found.X, X_mem[np.array(add_mem, np.int64)]]))
+                 np.concatenate([found.X, X_mem[add_mem]]),
+                 np.concatenate([found.mem_idx, add_mem]))
