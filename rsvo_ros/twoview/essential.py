@@ -11,6 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from rsvo_ros.twoview import kernels
 from rsvo_ros.twoview.solver import depths
 from rsvo_ros.twoview.state import Correspondences, RSBatch
 
@@ -138,40 +139,17 @@ def essential(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return tx @ R
 
 
-def kabsch(b_prev: np.ndarray, b_curr: np.ndarray) -> np.ndarray:
-    """Rotations (…, 3, 3) best mapping unit bearings ``b_curr ~ R b_prev`` (…, n, 3)."""
-    H = np.swapaxes(b_curr, -1, -2) @ b_prev
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(U @ Vt))
-    D = np.zeros(H.shape)
-    D[..., 0, 0] = 1.0
-    D[..., 1, 1] = 1.0
-    D[..., 2, 2] = d
-    return U @ D @ Vt
-
-
 def rotation_only_residual_px(corr: Correspondences, rng: np.random.Generator,
                                hypotheses: int = 16) -> tuple[float, np.ndarray]:
     """Median image distance (px) left by the best rotation-only motion (2-point RANSAC +
     refit): what a camera that only rotates cannot explain, i.e. the translation parallax.
-    Returns it and that rotation."""
+    Returns it and that rotation (compiled: :func:`rsvo_ros.twoview.kernels.rotation_only_fit`;
+    the hypotheses are ranked on ``ROTATION_VOTERS`` evenly spread points, the two refits on
+    the better half of all points)."""
     b_p = corr.x_prev / np.linalg.norm(corr.x_prev, axis=1, keepdims=True)
     b_c = corr.x_curr / np.linalg.norm(corr.x_curr, axis=1, keepdims=True)
     n = len(corr)
-    idx = np.argpartition(rng.random((hypotheses, n)), 1, axis=1)[:, :2]
-    Rs = kabsch(b_p[idx], b_c[idx])
-
-    def residuals(R, keep=slice(None)):
-        rp = b_p[keep] @ np.swapaxes(R, -1, -2)
-        z = np.where(np.abs(rp[..., 2:3]) > 1e-12, rp[..., 2:3], 1e-12)
-        return np.linalg.norm(rp[..., :2] / z - corr.x_curr[keep, :2], axis=-1) * corr.focal
-
-    # the hypotheses are ranked on evenly spread voters (the refits below use all points)
-    voters = np.linspace(0, n - 1, min(n, ROTATION_VOTERS)).astype(int)
-    med = np.median(residuals(Rs, voters), axis=1)
-    R = Rs[int(np.argmin(med))]
-    for _ in range(2):
-        r = residuals(R)
-        keep = r <= np.median(r)
-        R = kabsch(b_p[keep], b_c[keep])
-    return float(np.median(residuals(R))), R
+    voters = np.linspace(0, n - 1, min(n, ROTATION_VOTERS)).astype(np.int64)
+    med, R = kernels.rotation_only_fit(b_p, b_c, np.ascontiguousarray(corr.x_curr),
+                                       float(corr.focal), rng.random((hypotheses, n)), voters)
+    return float(med), R

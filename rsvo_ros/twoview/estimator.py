@@ -227,6 +227,15 @@ def estimate_relative_pose(
         return finish(RelativePoseResult(False, model, inliers=inl, reason=reason,
                                          iterations=iterations))
 
+    def gs_starts() -> GSStarts:
+        return GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed, min_inliers)
+
+    more_starts = None
+    if model == "rs" and mode == "fast":
+        # the global search's extra GS starts (four OpenCV fits), begun at once on a worker
+        # thread while this one fits the tolerant GS start below; where that start shows the
+        # RS distortion small (a local search), those the worker has not begun are dropped
+        more_starts = gs_starts()
     if model == "mvo":
         R, t, mask, iters = estimate_mvo(corr, ransac.threshold_px, ransac.confidence,
                                           ransac.max_iterations, rng)
@@ -237,22 +246,19 @@ def estimate_relative_pose(
         method = GS_METHOD if model == "gs" else INIT_METHOD
         R, t, mask, iters, E = estimate_gs_opencv(corr, thr, ransac.confidence, max_it, seed,
                                                    method)
+    has_pose = np.linalg.norm(t) > 0
+    start = RSBatch.from_pose(R, t) if has_pose else None  # (a zero t: no pose, failed below)
+    start_scale = None
+    if more_starts is not None and has_pose:
+        # where even the tolerant GS fit leaves the points far off (strong RS distortion), the
+        # search is global and needs the extra starts
+        start_scale = data_scale(start, corr, np.inf)
+    if more_starts is not None and (start_scale is None or start_scale < lm.local_scale_px
+                                    or mask.sum() < min_inliers):  # fmt: skip
+        more_starts.cancel()
     if mask.sum() < min_inliers:
         return failed(f"too few inliers for a GS essential matrix ({int(mask.sum())})", mask,
                       iters)
-    has_pose = np.linalg.norm(t) > 0
-    start = RSBatch.from_pose(R, t) if has_pose else None  # (a zero t: no pose, failed below)
-
-    def gs_starts() -> GSStarts:
-        return GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed, min_inliers)
-
-    start_scale = more_starts = None
-    if model == "rs" and mode == "fast" and has_pose:
-        # where even the tolerant GS fit leaves the points far off (strong RS distortion), the
-        # search is global: its extra GS starts are fitted meanwhile, on other threads
-        start_scale = data_scale(start, corr, np.inf)
-        if start_scale >= lm.local_scale_px:
-            more_starts = gs_starts()
     parallax, R_rot = rotation_only_residual_px(corr, rng)
     # the noise of the model RANSAC fitted (an upper bound: RS distortion adds to it)
     e_fit = sampson_gs_px(E, corr.x_prev, corr.x_curr, corr.focal)

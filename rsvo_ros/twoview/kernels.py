@@ -470,3 +470,82 @@ def depths_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr):
                 lam_p[b, i] = (ab * bT - b2 * aT) / det
                 lam_c[b, i] = (aa * bT - ab * aT) / det
     return lam_p, lam_c
+
+
+# --------------------------------------------------------------------------- rotation-only fit
+
+
+@nb.njit(**JIT)
+def _kabsch_masked(b_prev, b_curr, keep):
+    """The rotation best mapping unit bearings ``b_curr ~ R b_prev`` of the rows ``keep``
+    (bool (n,)): Kabsch, the SVD of their correlation with the sign of the determinant
+    fixed."""
+    H = np.zeros((3, 3))
+    for i in range(b_prev.shape[0]):
+        if keep[i]:
+            for r in range(3):
+                for c in range(3):
+                    H[r, c] += b_curr[i, r] * b_prev[i, c]
+    U, _, Vt = np.linalg.svd(H)
+    UV = U @ Vt
+    if np.linalg.det(UV) < 0.0:
+        for r in range(3):
+            U[r, 2] = -U[r, 2]
+        UV = U @ Vt
+    return UV
+
+
+@nb.njit(**JIT)
+def _rotation_residuals_px(R, b_prev, x_curr, focal, out):
+    """Image distances (px) between ``R b_prev`` and ``x_curr`` (normalized), into ``out``."""
+    for i in range(b_prev.shape[0]):
+        p0 = R[0, 0] * b_prev[i, 0] + R[0, 1] * b_prev[i, 1] + R[0, 2] * b_prev[i, 2]
+        p1 = R[1, 0] * b_prev[i, 0] + R[1, 1] * b_prev[i, 1] + R[1, 2] * b_prev[i, 2]
+        z = R[2, 0] * b_prev[i, 0] + R[2, 1] * b_prev[i, 1] + R[2, 2] * b_prev[i, 2]
+        if not abs(z) > 1e-12:
+            z = 1e-12
+        out[i] = focal * np.sqrt((p0 / z - x_curr[i, 0]) ** 2 + (p1 / z - x_curr[i, 1]) ** 2)
+
+
+@nb.njit(**JIT)
+def rotation_only_fit(b_prev, b_curr, x_curr, focal, draws, voters):
+    """2-point RANSAC of a rotation-only motion and two refits on the better half of the
+    points (:func:`rsvo_ros.twoview.essential.rotation_only_residual_px`): each row of
+    ``draws`` (hypotheses, n) picks its two smallest entries' points; the hypotheses are ranked
+    by the median residual (px) on the rows ``voters``. Returns the median residual of the
+    final rotation on all points and the rotation."""
+    n = b_prev.shape[0]
+    keep = np.zeros(n, np.bool_)
+    r_all = np.empty(n)
+    r_vote = np.empty(voters.shape[0])
+    sub = np.empty((voters.shape[0], 3))
+    xsub = np.empty((voters.shape[0], 3))
+    for m in range(voters.shape[0]):
+        sub[m] = b_prev[voters[m]]
+        xsub[m] = x_curr[voters[m]]
+    best_R = np.eye(3)
+    best = np.inf
+    for h in range(draws.shape[0]):
+        i0, i1 = -1, -1
+        for i in range(n):  # the two smallest draws
+            if i0 < 0 or draws[h, i] < draws[h, i0]:
+                i1, i0 = i0, i
+            elif i1 < 0 or draws[h, i] < draws[h, i1]:
+                i1 = i
+        keep[:] = False
+        keep[i0] = True
+        keep[i1] = True
+        R = _kabsch_masked(b_prev, b_curr, keep)
+        _rotation_residuals_px(R, sub, xsub, focal, r_vote)
+        med = np.median(r_vote)
+        if med < best:
+            best, best_R = med, R
+    R = best_R
+    for _ in range(2):
+        _rotation_residuals_px(R, b_prev, x_curr, focal, r_all)
+        med = np.median(r_all)
+        for i in range(n):
+            keep[i] = r_all[i] <= med
+        R = _kabsch_masked(b_prev, b_curr, keep)
+    _rotation_residuals_px(R, b_prev, x_curr, focal, r_all)
+    return np.median(r_all), R

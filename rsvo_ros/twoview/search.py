@@ -30,7 +30,10 @@ from rsvo_ros.twoview.state import NUM_PARAMS, Correspondences, RSBatch
 # GS starts of the RS model: OpenCV's USAC with local optimisation finds a good GS fit of RS
 # data (inlier ratio ~35-75 %) in 1-2 ms where plain RANSAC takes 7-35 ms.
 INIT_METHOD = cv2.USAC_FAST
-GS_START_WORKERS = 2  # threads of the GS starts' OpenCV fits (the machine class has 2 cores)
+# threads that fit the GS starts beside the caller, which fits the tolerant start meanwhile and
+# then those no worker has begun (the machine class has 2 cores; 1 and 2 workers measured alike
+# on the bench's pairs, and one leaves the other core to the node's tracking)
+GS_START_WORKERS = 1
 CANDIDATE_SEPARATION_DEG = 1.0  # sample hypotheses this far apart are distinct candidates
 CHEIRALITY_POINTS = 100  # points that vote on a hypothesis' depth consistency
 # LM iterations of the GS alternative of the model selection: it converges in a few where there
@@ -96,8 +99,14 @@ def difference_basis() -> np.ndarray:
 
 
 def _random_samples(n: int, count: int, size: int, rng: np.random.Generator) -> np.ndarray:
-    """(count, size) distinct indices per row."""
-    return np.argsort(rng.random((count, n)), axis=1)[:, :size]
+    """(count, size) distinct indices per row: the ``size`` smallest of ``n`` uniform draws
+    per row, in the order of their draws (``argsort(draws)[:, :size]``, selected first)."""
+    draws = rng.random((count, n))
+    if size >= n:
+        return np.argsort(draws, axis=1)[:, :size]
+    part = np.argpartition(draws, size - 1, axis=1)[:, :size]
+    order = np.argsort(np.take_along_axis(draws, part, axis=1), axis=1)
+    return np.take_along_axis(part, order, axis=1)
 
 
 @dataclass
@@ -442,13 +451,15 @@ def _polish(best: RSBatch, corr: Correspondences, threshold_px: float, lm: LMOpt
 
 
 class GSStarts:
-    """More GS starting points for the RS search, fitted on a small thread pool while the
-    caller goes on with the rotation and null fits (OpenCV releases the GIL; the four fits
-    take ~3 ms on one core): the RS distortion makes GS fits depend on the threshold and on
-    which rows they see, and at strong distortion any one of them can be several degrees off.
+    """More GS starting points for the RS search, fitted on a worker thread from the start of
+    an estimate while the caller fits the tolerant GS start and the rotation (OpenCV releases
+    the GIL; the four fits take ~3 ms on one core): the RS distortion makes GS fits depend on
+    the threshold and on which rows they see, and at strong distortion any one of them can be
+    several degrees off.
     Fits with ``lm.init_thresholds_px`` on all points and with ``ransac.init_threshold_px`` on
     three row bands. :meth:`result` collects them, fitting itself those no worker has started
-    (rather than wait idle); :meth:`cancel` drops those not started."""
+    (rather than wait idle), also after :meth:`cancel`, which drops those not started (a
+    local search needs none, unless its best GS fit turns out worse than the tolerant one)."""
 
     def __init__(self, corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacOptions,
                  lm: LMOptions, seed: int, min_inliers: int) -> None:

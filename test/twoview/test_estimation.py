@@ -100,6 +100,85 @@ def test_concurrent_calls_give_the_sequential_results(paper_scene):
         assert np.array_equal(a.w_curr, b.w_curr) and np.array_equal(a.inliers, b.inliers)
 
 
+def test_gs_starts_dropped_by_a_local_search_are_fitted_when_asked_for(paper_scene):
+    """The extra GS starts begin before the estimator knows whether the search is local; a
+    local search drops those not begun (``cancel``), and if it then needs them after all,
+    ``result`` fits them on the caller: the same starts either way."""
+    from rsvo_ros.twoview.options import LMOptions
+    from rsvo_ros.twoview.search import GSStarts
+    from rsvo_ros.twoview.state import make_correspondences
+
+    pair = paper_scene.frame_pair(np.random.default_rng(3), level=4)
+    row_ref = pair.K[1, 2]
+    corr = make_correspondences(pair.pts_prev, pair.pts_curr, pair.K, pair.line_delay, row_ref,
+                                pair.pts_prev[:, 1], pair.pts_curr[:, 1])
+    rows = pair.pts_prev[:, 1] - row_ref
+
+    def starts(cancel):
+        gs = GSStarts(corr, rows, RansacOptions(), LMOptions(), 0, 15)
+        if cancel:
+            gs.cancel()
+        return gs.result()
+
+    whole, dropped = starts(False), starts(True)
+    assert len(whole) == 4  # one threshold on all points, three row bands
+    assert len(dropped) == len(whole)
+    for a, b in zip(whole, dropped, strict=True):
+        assert np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+
+
+def _rotation_only_reference(x_prev, x_curr, focal, draws, voters):
+    """The rotation-only fit written out in numpy (Kabsch by SVD, medians): what the compiled
+    kernel must give."""
+
+    def kabsch(b_p, b_c):
+        U, _, Vt = np.linalg.svd(b_c.T @ b_p)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+        return U @ D @ Vt
+
+    def residuals(R, rows):
+        rp = b_p[rows] @ R.T
+        return focal * np.linalg.norm(rp[:, :2] / rp[:, 2:] - x_curr[rows, :2], axis=1)
+
+    b_p = x_prev / np.linalg.norm(x_prev, axis=1, keepdims=True)
+    b_c = x_curr / np.linalg.norm(x_curr, axis=1, keepdims=True)
+    hyps = [kabsch(b_p[np.argsort(d)[:2]], b_c[np.argsort(d)[:2]]) for d in draws]
+    R = hyps[int(np.argmin([np.median(residuals(R, voters)) for R in hyps]))]
+    for _ in range(2):
+        r = residuals(R, slice(None))
+        keep = r <= np.median(r)
+        R = kabsch(b_p[keep], b_c[keep])
+    return float(np.median(residuals(R, slice(None)))), R
+
+
+def test_the_compiled_rotation_only_fit_equals_its_numpy_reference():
+    """A turning camera with some translation and a fifth of the matches wrong: the kernel's
+    rotation and residual are the reference's, and the rotation is about the true one."""
+    from rsvo_ros.twoview import kernels
+
+    rng = np.random.default_rng(8)
+    X = np.column_stack([rng.uniform(-3, 3, (300, 2)), rng.uniform(4, 15, 300)])
+    R_true = so3_exp(np.array([0.01, -0.03, 0.005]))
+    t = np.array([0.02, 0.0, 0.01])
+    x_prev = X / X[:, 2:]
+    Xc = X @ R_true.T + t
+    x_curr = Xc / Xc[:, 2:]
+    x_curr[:, :2] += rng.normal(0.0, 0.5 / 1000.0, (300, 2))
+    wrong = rng.random(300) < 0.2
+    x_curr[wrong, :2] += rng.uniform(-0.05, 0.05, (int(wrong.sum()), 2))
+    draws = rng.random((16, 300))
+    voters = np.linspace(0, 299, 100).astype(np.int64)
+    b_p = x_prev / np.linalg.norm(x_prev, axis=1, keepdims=True)
+    b_c = x_curr / np.linalg.norm(x_curr, axis=1, keepdims=True)
+    med, R = kernels.rotation_only_fit(b_p, b_c, x_curr, 1000.0, draws, voters)
+    med_ref, R_ref = _rotation_only_reference(x_prev, x_curr, 1000.0, draws, voters)
+    assert abs(med - med_ref) < 1e-9 * max(1.0, med_ref)
+    assert np.allclose(R, R_ref, atol=1e-12)
+    # the true rotation, up to what the translation's parallax (0.1-0.3 deg) pulls it by
+    assert rotation_angle_deg(R @ R_true.T) < 0.3
+    assert 0.5 < med < 20.0  # that parallax is left over
+
+
 def test_statistics_are_reported(paper_scene):
     pair = paper_scene.frame_pair(np.random.default_rng(5), level=2)
     res = estimate_relative_pose(pair.pts_prev, pair.pts_curr, pair.K, pair.line_delay)
