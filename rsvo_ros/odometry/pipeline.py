@@ -122,6 +122,7 @@ class FrameResult:
     velocity: tuple[np.ndarray, np.ndarray] | None = None  # window: (w, v) in the row-0 frame
     time_reset: bool = False  # time jumped back: this frame starts a new trajectory
     mapping_ms: float = 0.0  # window: the part of time_ms spent in the window BA (keyframes)
+    refound: bool = False  # window: this frame re-found a lost map by its landmarks' descriptors
 
     @property
     def has_pose(self) -> bool:
@@ -442,7 +443,8 @@ class OdometryPipeline:
                       inlier_ratio=out.inliers / max(out.tracked, 1),
                       pts_prev=pair.pts_prev, pts_curr=pair.pts_curr,
                       keyframe=out.keyframe, velocity=velocity,
-                      mapping_ms=out.ba.time_ms if out.ba is not None else 0.0)  # fmt: skip
+                      mapping_ms=out.ba.time_ms if out.ba is not None else 0.0,
+                      refound=out.refound)  # fmt: skip
 
 
 def warm_up() -> float:

@@ -34,7 +34,6 @@ from rsvo_ros.core.geometry import pose_inverse
 from rsvo_ros.odometry.pairwise import uncertain_rotation_or_auto
 from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions, warm_up
 from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
-from rsvo_ros.odometry.window import REFOUND_REASON
 from rsvo_ros.ros.convert import (
     COVARIANCE_UNKNOWN,
     POINT_FIELD_FLOAT32,
@@ -293,7 +292,7 @@ class RsvoNode(Node):
             return
         if res.status == "held":
             self.stats["held"] += 1
-        if res.reason.startswith(REFOUND_REASON):
+        if res.refound:
             self.stats["map_refound"] += 1
         self._state = {"initialising": f"initialising: {res.reason}", "tracking": "tracking",
                        "lost": f"lost: {res.reason}"}[res.tracking]  # fmt: skip

@@ -41,7 +41,7 @@ from rsvo_ros.odometry.tracker import (
     TrackerOptions,
     refine_window_or_auto,
 )
-from rsvo_ros.odometry.window import REFOUND_REASON, WindowOptions
+from rsvo_ros.odometry.window import WindowOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import (
     POINT_FIELD_FLOAT32,
@@ -321,7 +321,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     skipped[res.reason.split(" (")[0]] += 1
                     continue
                 statuses[res.status] += 1
-                refound += res.reason.startswith(REFOUND_REASON)
+                refound += res.refound
                 if res.time_reset:
                     time_resets += 1
                     if last_map_ns is not None:
