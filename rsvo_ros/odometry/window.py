@@ -98,6 +98,12 @@ class WindowOptions:
     # its world and scale (False: hold them at the first frame's pose)
     pairwise_bootstrap: bool = True
     min_shared_for_scale: int = 8
+    # a pair recovery whose scale moves the camera more than this many usual steps (the median
+    # speed of the last tracked frames times the time since the keyframe) is not believed: the
+    # last speed scales it (the shared landmarks' depths from a pair of a walker who stopped,
+    # a few millimetres apart, gave 31 usual steps; a walker setting off after a look-around
+    # took a right 4.9, which 3 rejected)
+    recovery_max_steps: float = 10.0
     # mapping (keyframe insertion and the window BA) on a background thread: tracking goes on
     # against the map it has and picks up the refined map at its next frame; while mapping is
     # busy no new keyframe is made (ORB-SLAM's rule). False: inline (deterministic; the replay)
@@ -616,7 +622,11 @@ class WindowOdometry:
 
     def _pair_scale(self, kf: KeyFrame, res, ia: np.ndarray, dt: float) -> float | None:
         """Map units per unit of the pair's ``|t|`` from the depths of the landmarks the pair
-        shares with the map (median ratio), else from the last speed."""
+        shares with the map (median ratio) unless that moves the camera more than
+        ``recovery_max_steps`` usual steps, else from the last speed (at most twice the usual
+        speed: the frames just before a loss may be off)."""
+        usual = self._usual_speed()
+        limit = np.inf if usual is None else self.options.recovery_max_steps * usual * dt
         tids = kf.obs.ids[ia]
         ids, X = self._points
         _, i_map, i_pair = np.intersect1d(ids, tids, return_indices=True)
@@ -628,9 +638,11 @@ class WindowOdometry:
             depth_map = np.einsum("nji,nj->ni", R_s, X[i_map][good] - p_s)[:, 2]
             ratio = depth_map / res.depths_prev[i_pair][good]
             ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
-            if len(ratio) >= self.options.min_shared_for_scale:
+            if len(ratio) >= self.options.min_shared_for_scale and np.median(ratio) <= limit:
                 return float(np.median(ratio))
         speed = float(np.linalg.norm(self._last.v)) if self._last is not None else 0.0
+        if usual is not None:
+            speed = min(speed, 2.0 * usual)
         return speed * dt if speed * dt > 0 else None
 
     # ------------------------------------------------------------------ mapping

@@ -16,6 +16,7 @@ import json
 import shutil
 import sys
 import time
+import traceback
 from collections import Counter, deque
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -269,8 +270,23 @@ def replay(cfg: ReplayConfig) -> dict:
             if poses and last_path_ns != poses[-1][0]:
                 write_path(poses[-1][0])
 
+        def messages():
+            """The bag's messages until the storage fails (a truncated or corrupt file in the
+            middle of the bag): that ends the bag, counted; any other error is not the
+            bag's."""
+            it = iter(reader.messages(connections=wanted))
+            while True:
+                try:
+                    item = next(it)
+                except StopIteration:
+                    return
+                except Exception as exc:  # noqa: BLE001 - the reader's, whatever it raises
+                    skipped[f"bag read stopped: {type(exc).__name__}: {exc}"[:200]] += 1
+                    return
+                yield item
+
         try:
-            for conn, _t, raw in reader.messages(connections=wanted):
+            for conn, _t, raw in messages():
                 try:
                     msg = bagio.deserialize(raw, conn.msgtype)
                 except Exception as exc:
@@ -316,7 +332,16 @@ def replay(cfg: ReplayConfig) -> dict:
                     pipeline = OdometryPipeline(camera.K, camera.lens, line_delay, options)
                 else:
                     pipeline.set_camera(camera.K, camera.lens, line_delay)
-                res = pipeline.process(stamp, gray)
+                try:
+                    res = pipeline.process(stamp, gray)
+                except Exception as exc:  # noqa: BLE001 - as the node: one frame, not the bag
+                    # the pipeline skips bad data itself; this is a fault of the package,
+                    # counted per frame with the first traceback printed, the rest goes on
+                    key = f"processing error: {type(exc).__name__}: {exc}"[:200]
+                    if not any(k.startswith("processing error") for k in skipped):
+                        traceback.print_exc(file=sys.stderr)
+                    skipped[key] += 1
+                    continue
                 if res.status == "skipped":
                     skipped[res.reason.split(" (")[0]] += 1
                     continue
@@ -346,8 +371,6 @@ def replay(cfg: ReplayConfig) -> dict:
                                      "time_ms": res.time_ms, "reason": res.reason,
                                      "keyframe": res.keyframe,
                                      "tracking": res.tracking})  # fmt: skip
-        except Exception as exc:  # truncated / corrupt storage in the middle of the bag
-            skipped[f"bag read stopped: {type(exc).__name__}: {exc}"[:200]] += 1
         finally:
             if est and results_meta and results_meta[-1]["stamp_ns"] != last_map_ns:
                 write_map(results_meta[-1]["stamp_ns"])  # the final map and keyframes

@@ -346,6 +346,31 @@ def test_two_passes_replay_with_the_first_pass_estimate(walk_bag, tmp_path, caps
     assert "--two-pass needs --line-delay auto" in capsys.readouterr().err
 
 
+def test_a_processing_error_skips_that_frame_and_the_rest_is_processed(vehicle_bag, tmp_path,
+                                                                       capsys, monkeypatch):
+    """A fault of the package on one frame (here made to happen) is counted as that frame's,
+    with its traceback, as the node does; it is not the bag's (it was reported as "bag read
+    stopped", and the frames after it were lost)."""
+    from rsvo_ros.odometry.pipeline import OdometryPipeline
+
+    process = OdometryPipeline.process
+    calls = []
+
+    def faulty(self, stamp_ns, gray):
+        calls.append(stamp_ns)
+        if len(calls) == 3:
+            raise RuntimeError("made to fail")
+        return process(self, stamp_ns, gray)
+
+    monkeypatch.setattr(OdometryPipeline, "process", faulty)
+    out = tmp_path / "fault"
+    assert replay_main([str(vehicle_bag), "--output", str(out), "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["skipped_reasons"] == {"processing error: RuntimeError: made to fail": 1}
+    assert s["frames_in"] == 8 and s["frames_posed"] == 7
+    assert "Traceback" in capsys.readouterr().err
+
+
 def test_max_frames_stops_early_and_is_checked(vehicle_bag, tmp_path, capsys):
     out = tmp_path / "five"
     assert replay_main([str(vehicle_bag), "--output", str(out), "--max-frames", "5",
