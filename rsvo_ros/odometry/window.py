@@ -496,14 +496,13 @@ class WindowOdometry:
         step = float(np.linalg.norm(pred.p - self._last.p))
         sp = o.prior_p_step * step
         pp2 = 1.0 / sp**2 if sp > 0 and np.isfinite(sp) else 0.0
-        state, err, inl, H = self._motion_only(
+        state, inl, H, sigma2 = self._motion_only(
             stamp_ns, pred.R, pred.p, self._last.w, self._last.v, X[ia], obs.x[ib], obs.s[ib],
             np.concatenate([w_cv, v_cv, pred.p]), sv, pp2)  # fmt: skip
         if state is None or inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)):
             return None
-        sigma2 = float(np.mean(err[inl] ** 2)) / 2.0
         result = WindowResult("posed", "", state, inliers=int(inl.sum()), tracked=len(ia),
-                              hessian=H, sigma2=max(sigma2, 1e-6))  # fmt: skip
+                              hessian=H, sigma2=sigma2)  # fmt: skip
         if last_kf.after is None and last_kf.state.stamp_ns < stamp_ns:
             last_kf.after = state.copy()  # read by the next window BA
         inliers = int(inl.sum())
@@ -543,7 +542,8 @@ class WindowOdometry:
         ``x`` (row times ``s``), from ``(R0, p0, w0, v0)``, with its priors (the rate's
         ``prior_w_rad_s``, the velocity's ``v_std``, the position's inverse variance
         ``p_inv_var``; ``prior_mean`` = ``[w, v, p]``). Returns the state (None if not
-        finite), each point's reprojection error (px), its inliers and the Hessian."""
+        finite), the inliers (reprojection error under ``track_inlier_px``), the Hessian and
+        the inliers' residual variance per image coordinate (px^2, at least 1e-6)."""
         o = self.options
         p2 = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / v_std**2, p_inv_var], 3)
         R, p, w, v, a, res, cost, H = rs_projection.track_frame(
@@ -553,7 +553,8 @@ class WindowOdometry:
         err = np.linalg.norm(res, axis=1)
         inl = err < o.track_inlier_px * self._px
         finite = np.isfinite(R).all() and np.isfinite(p).all()
-        return (FrameState(stamp_ns, R, p, w, v, a) if finite else None), err, inl, H
+        sigma2 = max(float(np.mean(err[inl] ** 2)) / 2.0, 1e-6) if inl.any() else np.inf
+        return (FrameState(stamp_ns, R, p, w, v, a) if finite else None), inl, H, sigma2
 
     def _usual_speed(self) -> float | None:
         """Median speed (map units/s) of the last tracked frames, None before any."""
@@ -638,8 +639,9 @@ class WindowOdometry:
             depth_map = np.einsum("nji,nj->ni", R_s, X[i_map][good] - p_s)[:, 2]
             ratio = depth_map / res.depths_prev[i_pair][good]
             ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
-            if len(ratio) >= self.options.min_shared_for_scale and np.median(ratio) <= limit:
-                return float(np.median(ratio))
+            scale = float(np.median(ratio)) if len(ratio) else np.inf
+            if len(ratio) >= self.options.min_shared_for_scale and scale <= limit:
+                return scale
         speed = float(np.linalg.norm(self._last.v)) if self._last is not None else 0.0
         if usual is not None:
             speed = min(speed, 2.0 * usual)
@@ -744,12 +746,11 @@ class WindowOdometry:
         sv = max(o.prior_v_rel * (usual or 0.0), o.prior_v_floor)
         w0, v0 = predicted.w.copy(), np.zeros(3)
         j = found.obs_idx
-        state, err, inl, H = self._motion_only(
+        state, inl, H, sigma2 = self._motion_only(
             stamp_ns, found.R, found.p, w0, v0, found.X, obs.x[j], obs.s[j],
             np.concatenate([w0, v0, found.p]), sv, 0.0)  # fmt: skip
         if state is None or inl.sum() < o.reloc_min_inliers:
             return None
-        sigma2 = float(np.mean(err[inl] ** 2)) / 2.0
         j, X = j[inl], found.X[inl]
         R_rows, p_rows = state.row_cameras(obs.s[j])
         depth = np.einsum("nji,nj->ni", R_rows, X - p_rows)[:, 2]
@@ -773,7 +774,7 @@ class WindowOdometry:
         self._hints.clear()
         return WindowResult("posed", f"{REFOUND_REASON} ({int(inl.sum())} points)", state,
                             inliers=int(inl.sum()), tracked=len(found.obs_idx), keyframe=True,
-                            hessian=H, sigma2=max(sigma2, 1e-6), refound=True)
+                            hessian=H, sigma2=sigma2, refound=True)
 
     def _map_options(self) -> MapOptions:
         """The map's options: the given ones; without a readout (a global shutter, or the GS

@@ -227,15 +227,12 @@ def estimate_relative_pose(
         return finish(RelativePoseResult(False, model, inliers=inl, reason=reason,
                                          iterations=iterations))
 
-    def gs_starts() -> GSStarts:
-        return GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed, min_inliers)
-
     more_starts = None
     if model == "rs" and mode == "fast":
         # the global search's extra GS starts (four OpenCV fits), begun at once on a worker
         # thread while this one fits the tolerant GS start below; where that start shows the
         # RS distortion small (a local search), those the worker has not begun are dropped
-        more_starts = gs_starts()
+        more_starts = GSStarts(corr, pts_prev[:, 1] - row_ref, ransac, lm, seed, min_inliers)
     if model == "mvo":
         R, t, mask, iters = estimate_mvo(corr, ransac.threshold_px, ransac.confidence,
                                           ransac.max_iterations, rng)
@@ -301,7 +298,7 @@ def estimate_relative_pose(
         local = None if predicted is None else RSBatch.from_pose(*predicted)
 
         def starts() -> RSBatch:  # the global search's: several GS fits and a rotation fit
-            extra = (more_starts or gs_starts()).result()
+            extra = more_starts.result()  # dropped ones are fitted here if need be
             found = [start] + ([] if null_start is start else [null_start]) + extra + [
                 rotation_start(corr, R_rot)] + ([] if local is None else [local])
             return RSBatch(*(np.concatenate([getattr(s, f) for s in found])
