@@ -116,6 +116,9 @@ class FrameResult:
     pts_prev: np.ndarray | None = None  # raw pixels of the pair (for drawing)
     pts_curr: np.ndarray | None = None
     inliers: np.ndarray | None = None  # (n,) of pts_curr: used by the estimate (for drawing)
+    # (n,) of pts_curr: rejected by the estimate; None: every track that is not an inlier was
+    # (window: tracks with no map point are neither)
+    outliers: np.ndarray | None = None
     keyframe: bool = False  # window: this frame became a keyframe
     # "initialising" (no motion estimate yet), "tracking" or "lost" (the pose is held)
     tracking: str = "tracking"
@@ -439,9 +442,13 @@ class OdometryPipeline:
         if out.status == "held" and interval is not None and len(pair.ids) \
                 < self.options.min_tracks:
             reason = f"lost tracking ({len(pair.ids)} tracks): {reason}"
+        drawn = {}
+        if out.inlier_ids is not None and out.status == "posed":
+            drawn = {"inliers": np.isin(pair.ids, out.inlier_ids),
+                     "outliers": np.isin(pair.ids, out.outlier_ids)}
         return result(out.status, reason, num_tracks=n, num_inliers=out.inliers,
                       inlier_ratio=out.inliers / max(out.tracked, 1),
-                      pts_prev=pair.pts_prev, pts_curr=pair.pts_curr,
+                      pts_prev=pair.pts_prev, pts_curr=pair.pts_curr, **drawn,
                       keyframe=out.keyframe, velocity=velocity,
                       mapping_ms=out.ba.time_ms if out.ba is not None else 0.0,
                       refound=out.refound)  # fmt: skip

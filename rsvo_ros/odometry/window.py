@@ -170,6 +170,10 @@ class WindowResult:
     # the frame was posed against the memory of landmarks: its state is in the world of the
     # maps that wrote them (:meth:`WindowOdometry.in_trusted_map`), not the current map's
     refound: bool = False
+    # track ids of the map points this frame was posed with, and of those it rejected (for
+    # drawing; None when the frame was not posed against the map)
+    inlier_ids: np.ndarray | None = None
+    outlier_ids: np.ndarray | None = None
 
 
 class WindowOdometry:
@@ -466,9 +470,12 @@ class WindowOdometry:
         self._tracked_at_kf = len(self.map.landmarks)
         # (rebased: the world itself moved, and nothing was published in it yet)
         moved = [(before, kf.state.copy())] if hinted else []
+        paired = obs.ids[ib]
+        mapped = np.isin(paired, np.fromiter(self.map.landmarks, int, len(self.map.landmarks)))
         return WindowResult("posed", "initialised the map", self._last.copy(),
                             inliers=res.num_inliers, tracked=len(self.map.landmarks),
-                            keyframe=True, ba=report, ba_moved=moved)  # fmt: skip
+                            keyframe=True, ba=report, ba_moved=moved,
+                            inlier_ids=paired[mapped], outlier_ids=paired[~mapped])  # fmt: skip
 
     def _rebase_to_row0_of(self, kf: KeyFrame) -> None:
         """Move the world so that the first keyframe's row-0 camera is the origin."""
@@ -502,7 +509,8 @@ class WindowOdometry:
         if state is None or inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)):
             return None
         result = WindowResult("posed", "", state, inliers=int(inl.sum()), tracked=len(ia),
-                              hessian=H, sigma2=sigma2)  # fmt: skip
+                              hessian=H, sigma2=sigma2, inlier_ids=obs.ids[ib][inl],
+                              outlier_ids=obs.ids[ib][~inl])  # fmt: skip
         if last_kf.after is None and last_kf.state.stamp_ns < stamp_ns:
             last_kf.after = state.copy()  # read by the next window BA
         inliers = int(inl.sum())
@@ -751,6 +759,7 @@ class WindowOdometry:
             np.concatenate([w0, v0, found.p]), sv, 0.0)  # fmt: skip
         if state is None or inl.sum() < o.reloc_min_inliers:
             return None
+        outlier_ids = obs.ids[j[~inl]]
         j, X = j[inl], found.X[inl]
         R_rows, p_rows = state.row_cameras(obs.s[j])
         depth = np.einsum("nji,nj->ni", R_rows, X - p_rows)[:, 2]
@@ -774,7 +783,8 @@ class WindowOdometry:
         self._hints.clear()
         return WindowResult("posed", f"{REFOUND_REASON} ({int(inl.sum())} points)", state,
                             inliers=int(inl.sum()), tracked=len(found.obs_idx), keyframe=True,
-                            hessian=H, sigma2=sigma2, refound=True)
+                            hessian=H, sigma2=sigma2, refound=True,
+                            inlier_ids=obs.ids[j], outlier_ids=outlier_ids)  # fmt: skip
 
     def _map_options(self) -> MapOptions:
         """The map's options: the given ones; without a readout (a global shutter, or the GS

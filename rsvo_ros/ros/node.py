@@ -462,14 +462,18 @@ class RsvoNode(Node):
 
 
 def _debug_image(msg: Image, gray: np.ndarray, res: FrameResult) -> Image:
-    """Tracks as in the paper's Fig. 1: inliers green, outliers red, with their displacement."""
+    """Tracks as in the paper's Fig. 1: inliers green, outliers red, with their displacement
+    (window tracking: grey for tracks with no map point yet)."""
     img = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
-    rel = res.relative
     if res.pts_prev is not None and res.pts_curr is not None:
-        inl = rel.inliers if rel is not None and len(rel.inliers) == len(res.pts_curr) else \
-            np.zeros(len(res.pts_curr), bool)
-        for p0, p1, ok in zip(res.pts_prev, res.pts_curr, inl, strict=True):
-            color = (0, 200, 0) if ok else (0, 0, 255)
+        n = len(res.pts_curr)
+        inl = res.inliers
+        if inl is None or len(inl) != n:
+            rel = res.relative
+            inl = rel.inliers if rel is not None and len(rel.inliers) == n else np.zeros(n, bool)
+        rejected = res.outliers if res.outliers is not None and len(res.outliers) == n else ~inl
+        for p0, p1, ok, bad in zip(res.pts_prev, res.pts_curr, inl, rejected, strict=True):
+            color = (0, 200, 0) if ok else (0, 0, 255) if bad else (160, 160, 160)
             a = (int(round(p0[0])), int(round(p0[1])))
             b = (int(round(p1[0])), int(round(p1[1])))
             cv2.line(img, a, b, color, 1)

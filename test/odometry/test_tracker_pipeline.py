@@ -226,6 +226,13 @@ def test_pipeline_poses_every_frame_of_a_clean_sequence(backend):
     if backend == "pairwise":  # the chain's uncertainty grows; the window's is per frame
         assert all(b >= a for a, b in zip(traces, traces[1:], strict=False))
     assert all(np.isfinite(t) and t > 0 for t in traces[1:])
+    # every posed frame says which of its drawn tracks the estimate used (the debug image):
+    # the pairwise start, the map's initialisation and the frames tracked against the map
+    for _, r in out[1:]:
+        assert r.inliers is not None and len(r.inliers) == len(r.pts_curr), r.reason
+        assert r.inliers.sum() > 0.5 * len(r.inliers), r.reason
+        if r.outliers is not None:
+            assert len(r.outliers) == len(r.pts_curr) and not (r.inliers & r.outliers).any()
 
 
 @pytest.mark.parametrize("backend", ["window", "pairwise"])
