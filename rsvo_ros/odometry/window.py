@@ -56,8 +56,12 @@ REFOUND_REASON = "re-found the map"  # a frame's reason where descriptors found 
 @dataclass
 class WindowOptions:
     map: MapOptions = field(default_factory=MapOptions)
-    # median parallax (rotation removed) to initialise: a long first baseline (on 6 vehicle
-    # sequences 30 px left 4 of them 0.6-2.4 m off, 80 px one; on 5 walks 60-100 px alike)
+    # median image motion of the tracks since the reference frame (rotation included) to
+    # initialise the first map: a long first baseline (on 6 vehicle sequences 30 px left 4 of
+    # them 0.6-2.4 m off, 80 px one; on 5 walks 60-100 px alike). With the chain's rotation
+    # removed, a severity-2 walk (seed 101) stayed under it for 48 frames instead of 35 and
+    # its ATE went from 0.082 to 0.156 m (2026-11-26): the translation checks below gate it
+    # (a map after a loss: the translation parallax alone, REINIT_PARALLAX_FACTOR)
     init_parallax_px: float = 80.0
     # ... and at least this much of it left by the best rotation (translation parallax): a
     # vehicle turning along its road reached 80 px mostly by turning in 2-3 frames, and the
