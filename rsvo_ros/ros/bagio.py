@@ -1,6 +1,7 @@
 """ROS 2 messages and rosbag2 files with ``rosbags`` (no rclpy): the bag format of CONTRACTS.md.
 
-Topics: ``/camera/image_raw`` (sensor_msgs/Image, stamp = row-0 time), ``/camera/camera_info``
+Topics: ``/camera/image_raw`` (sensor_msgs/Image, stamp = row-0 time; written compressed:
+``/camera/image_raw/compressed``, sensor_msgs/CompressedImage), ``/camera/camera_info``
 (sensor_msgs/CameraInfo, same stamps), optional ``/ground_truth/odom`` (nav_msgs/Odometry,
 ``T_world_camera`` at the image stamps; its twist holds the frame's RS velocities ``(v, w)`` in
 the row-0 camera frame). The line delay is bag metadata custom data ``rsvo.line_delay``.
@@ -25,6 +26,8 @@ WORLD_FRAME = "world"
 LINE_DELAY_KEY = "rsvo.line_delay"
 STORAGES = ("sqlite3", "mcap")
 IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"  # image_transport's compressed
+IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 PATH_TYPE = "nav_msgs/msg/Path"
@@ -60,6 +63,30 @@ def image_msg(stamp_ns: int, image: np.ndarray, frame_id: str = CAMERA_FRAME):
     return _t(IMAGE_TYPE)(header=header(stamp_ns, frame_id), height=h, width=w,
                           encoding="mono8", is_bigendian=0, step=w,
                           data=np.ascontiguousarray(image).reshape(-1))  # fmt: skip
+
+
+COMPRESSIONS = ("png", "jpeg")
+JPEG_QUALITY = 90  # image_transport's compressed plugin's default (jpeg_quality 95 in ROS 1)
+
+
+def compressed_image_msg(stamp_ns: int, image: np.ndarray, compression: str,
+                         frame_id: str = CAMERA_FRAME):
+    """sensor_msgs/CompressedImage of a (H, W) uint8 image, as image_transport's compressed
+    plugin writes a mono8 image (``format`` ``"mono8; png compressed mono8"`` or ``"mono8;
+    jpeg compressed mono8"``)."""
+    import cv2
+
+    if image.dtype != np.uint8 or image.ndim != 2:
+        raise ValueError(f"expected a (H, W) uint8 image, got {image.dtype} {image.shape}")
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
+    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if compression == "jpeg" else []
+    ok, buf = cv2.imencode("." + ("jpg" if compression == "jpeg" else "png"), image, params)
+    if not ok:
+        raise ValueError(f"OpenCV could not encode the image as {compression}")
+    return _t(COMPRESSED_IMAGE_TYPE)(header=header(stamp_ns, frame_id),
+                                     format=f"mono8; {compression} compressed mono8",
+                                     data=buf.reshape(-1))  # fmt: skip
 
 
 def camera_info_msg(stamp_ns: int, K: np.ndarray, width: int, height: int,

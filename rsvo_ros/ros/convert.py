@@ -50,8 +50,42 @@ def to_gray(data: np.ndarray, encoding: str, height: int, width: int, step: int)
     return cv2.cvtColor(np.ascontiguousarray(img), code)
 
 
+def compressed_to_gray(data: np.ndarray, fmt: str) -> np.ndarray:
+    """uint8 (H, W) image from a sensor_msgs/CompressedImage payload (JPEG or PNG, as
+    image_transport's ``compressed`` plugin writes it: ``format`` ``"jpeg"``, ``"png"`` or
+    ``"bgr8; jpeg compressed bgr8"``; 16-bit PNG keeps its high byte, as mono16).
+
+    Raises ValueError naming the problem (empty, a depth image, undecodable data).
+    """
+    buf = np.frombuffer(np.asarray(data, dtype=np.uint8).tobytes(), dtype=np.uint8)
+    if buf.size == 0:
+        raise ValueError(f"empty compressed image (format {fmt!r})")
+    if "compresseddepth" in fmt.lower():
+        raise ValueError(f"compressedDepth is a depth image, not a camera image (format {fmt!r})")
+    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise ValueError(f"cannot decode the compressed image ({buf.size} bytes, format "
+                         f"{fmt!r}; JPEG and PNG are supported)")  # fmt: skip
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise ValueError(f"unsupported compressed pixel type {img.dtype} (format {fmt!r})")
+    if img.ndim == 2:
+        return np.ascontiguousarray(img)
+    # OpenCV decodes colour as BGR; image_transport compresses bgr8, or rgb8 as if it were bgr8
+    rgb = fmt.lower().rstrip().endswith(("rgb8", "rgba8"))
+    if img.shape[2] == 4:
+        code = cv2.COLOR_RGBA2GRAY if rgb else cv2.COLOR_BGRA2GRAY
+    else:
+        code = cv2.COLOR_RGB2GRAY if rgb else cv2.COLOR_BGR2GRAY
+    return cv2.cvtColor(img, code)
+
+
 def image_to_gray(msg) -> np.ndarray:
-    """uint8 (H, W) of a sensor_msgs/Image (rclpy or rosbags); ValueError as :func:`to_gray`."""
+    """uint8 (H, W) of a sensor_msgs/Image or sensor_msgs/CompressedImage (rclpy or rosbags);
+    ValueError as :func:`to_gray` and :func:`compressed_to_gray`."""
+    if not hasattr(msg, "encoding") and hasattr(msg, "format"):
+        return compressed_to_gray(msg.data, msg.format)
     return to_gray(msg.data, msg.encoding, msg.height, msg.width, msg.step)
 
 

@@ -27,7 +27,7 @@ from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_srvs.srv import Trigger
 
 from rsvo_ros.core.geometry import pose_inverse
@@ -47,7 +47,13 @@ from rsvo_ros.ros.convert import (
     stamp_ns,
     xyz_cloud_data,
 )
-from rsvo_ros.ros.params import PARAMETERS, help_text, params_yaml, read_config
+from rsvo_ros.ros.params import (
+    PARAMETERS,
+    help_text,
+    image_subscription,
+    params_yaml,
+    read_config,
+)
 
 try:  # not on PyPI: a ROS install provides it, else launch_scripts/setup.sh builds it
     from tf2_msgs.msg import TFMessage
@@ -143,7 +149,7 @@ class RsvoNode(Node):
     # ------------------------------------------------------------------ set-up
 
     def _try_subscribe_images(self) -> None:
-        infos = self.get_publishers_info_by_topic(self.p["image_topic"])
+        infos = self.get_publishers_info_by_topic(image_subscription(self.p)[0])
         if infos:
             reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
         elif time.monotonic() < self._qos_deadline:
@@ -156,10 +162,11 @@ class RsvoNode(Node):
     def _subscribe_images(self, reliable: bool) -> None:
         qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE if reliable
                          else ReliabilityPolicy.BEST_EFFORT)  # fmt: skip
-        self.sub_image = self.create_subscription(Image, self.p["image_topic"], self._on_image,
-                                                  qos)  # fmt: skip
-        self.get_logger().info(f"subscribed to {self.p['image_topic']} "
-                               f"({'reliable' if reliable else 'best effort'})")
+        topic, kind = image_subscription(self.p)
+        msg_type = CompressedImage if kind == "compressed" else Image
+        self.sub_image = self.create_subscription(msg_type, topic, self._on_image, qos)
+        self.get_logger().info(f"subscribed to {topic} ({msg_type.__name__}, "
+                               f"{'reliable' if reliable else 'best effort'})")
 
     # ------------------------------------------------------------------ callbacks
 

@@ -32,6 +32,7 @@ from rsvo_ros.twoview.estimator import MODELS
 QOS_CHOICES = ("auto", "reliable", "best_effort")
 LOST_CHOICES = ("large_covariance", "none")
 LINE_DELAY_MODES = ("fixed", "auto")
+IMAGE_TRANSPORTS = ("raw", "compressed")
 
 
 def _float(desc, lo, hi, step=0.0):
@@ -56,7 +57,12 @@ def _bool(desc):
 
 
 PARAMETERS = {
-    "image_topic": ("/camera/image_raw", _str("Input sensor_msgs/Image topic.")),
+    "image_topic": ("/camera/image_raw", _str("Input sensor_msgs/Image topic (the base "
+                                              "topic with image_transport compressed).")),
+    "image_transport": ("raw", _str(
+        "raw: sensor_msgs/Image on image_topic; compressed: sensor_msgs/CompressedImage (JPEG "
+        "or PNG) on image_topic + '/compressed', as image_transport's compressed plugin "
+        "publishes it (decoded here; JPEG artefacts cost some accuracy).", IMAGE_TRANSPORTS)),
     "camera_info_topic": ("/camera/camera_info", _str("Input sensor_msgs/CameraInfo topic.")),
     "odom_topic": ("/rsvo/odom", _str("Output nav_msgs/Odometry topic.")),
     "path_topic": ("/rsvo/path", _str("Output nav_msgs/Path topic.")),
@@ -191,6 +197,9 @@ def read_config(values: dict) -> NodeConfig:
     if p["image_qos_reliability"] not in QOS_CHOICES:
         raise ValueError(f"parameter image_qos_reliability must be one of {QOS_CHOICES}, "
                          f"got {p['image_qos_reliability']!r}")  # fmt: skip
+    if p["image_transport"] not in IMAGE_TRANSPORTS:
+        raise ValueError(f"parameter image_transport must be one of {IMAGE_TRANSPORTS}, "
+                         f"got {p['image_transport']!r}")  # fmt: skip
     if p["line_delay_mode"] not in LINE_DELAY_MODES:
         raise ValueError(f"parameter line_delay_mode must be one of {LINE_DELAY_MODES}, "
                          f"got {p['line_delay_mode']!r}")  # fmt: skip
@@ -219,6 +228,15 @@ def read_config(values: dict) -> NodeConfig:
     T_base_cam[:3, :3] = Rotation.from_quat(tf[3:]).as_matrix()
     T_base_cam[:3, 3] = tf[:3]
     return NodeConfig(dict(values), T_base_cam)
+
+
+def image_subscription(p: NodeConfig | dict) -> tuple[str, str]:
+    """``(topic, kind)`` the node subscribes its images on: ``kind`` ``"raw"``
+    (sensor_msgs/Image on ``image_topic``) or ``"compressed"`` (sensor_msgs/CompressedImage on
+    ``image_topic/compressed``, image_transport's naming)."""
+    if p["image_transport"] == "compressed":
+        return p["image_topic"].rstrip("/") + "/compressed", "compressed"
+    return p["image_topic"], "raw"
 
 
 def help_text() -> str:

@@ -172,10 +172,27 @@ def replay(cfg: ReplayConfig) -> dict:
     except Exception as exc:  # rosbags raises several types for unreadable bags
         raise ReplayError(f"cannot read bag {cfg.bag}: {exc}") from None
     topics = {c.topic: c for c in reader.connections}
+    images = sorted(t for t, c in topics.items() if c.msgtype in bagio.IMAGE_TYPES)
+    if cfg.image_topic == bagio.IMAGE_TOPIC and cfg.image_topic not in topics \
+            and len(images) == 1:
+        # the default topic is not there and the bag has one camera (e.g. only its
+        # image_transport compressed topic): that one
+        cfg = dataclasses.replace(cfg, image_topic=images[0])
+        print(f"rsvo_replay: {bagio.IMAGE_TOPIC} is not in the bag; using its only image topic "
+              f"{images[0]} ({topics[images[0]].msgtype.split('/')[-1]})", file=sys.stderr)
     if cfg.image_topic not in topics:
         reader.close()
-        raise ReplayError(f"no image topic {cfg.image_topic} in {cfg.bag} (topics: "
-                          f"{', '.join(sorted(topics)) or 'none'}); give --image-topic")
+        others = ", ".join(sorted(topics)) or "none"
+        hint = (f"image topics: {', '.join(images)}" if images else
+                f"no Image or CompressedImage topic; topics: {others}")
+        raise ReplayError(f"no image topic {cfg.image_topic} in {cfg.bag} ({hint}); give "
+                          "--image-topic")
+    if topics[cfg.image_topic].msgtype not in bagio.IMAGE_TYPES:
+        reader.close()
+        raise ReplayError(f"{cfg.image_topic} in {cfg.bag} is {topics[cfg.image_topic].msgtype}"
+                          f", not sensor_msgs/Image or CompressedImage"
+                          f"{' (image topics: ' + ', '.join(images) + ')' if images else ''}; "
+                          "give --image-topic")
     if cfg.camera_info_topic not in topics:
         reader.close()
         raise ReplayError(f"no camera info topic {cfg.camera_info_topic} in {cfg.bag} "
@@ -713,7 +730,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap)")
     p.add_argument("--output", "-o", type=Path, required=True, help="output directory")
     p.add_argument("--model", choices=MODELS, default="rs", help="relative pose model (rs)")
-    p.add_argument("--image-topic", default=bagio.IMAGE_TOPIC)
+    p.add_argument("--image-topic", default=bagio.IMAGE_TOPIC,
+                   help=f"sensor_msgs/Image or CompressedImage (JPEG, PNG: image_transport's "
+                        f"compressed, e.g. {bagio.IMAGE_TOPIC}/compressed) topic "
+                        f"(default {bagio.IMAGE_TOPIC})")
     p.add_argument("--camera-info-topic", default=bagio.CAMERA_INFO_TOPIC)
     p.add_argument("--ground-truth-topic", default=bagio.GROUND_TRUTH_TOPIC)
     p.add_argument("--line-delay", type=_line_delay_arg, default=None, metavar="S|auto",

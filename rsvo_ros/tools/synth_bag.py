@@ -18,11 +18,16 @@ EXIT_USAGE = 2
 
 
 def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
-              overwrite: bool = False, progress: bool = True) -> dict:
+              overwrite: bool = False, progress: bool = True,
+              compressed: str | None = None) -> dict:  # fmt: skip
     """Render ``config`` frame by frame into a bag at ``path``; returns a small summary.
+    ``compressed`` (``"png"`` or ``"jpeg"``): the images as sensor_msgs/CompressedImage on
+    ``/camera/image_raw/compressed`` instead of sensor_msgs/Image on ``/camera/image_raw``.
 
     Raises FileExistsError if ``path`` exists and ``overwrite`` is False.
     """
+    if compressed is not None and compressed not in bagio.COMPRESSIONS:
+        raise ValueError(f"compressed must be one of {bagio.COMPRESSIONS}, got {compressed!r}")
     path = Path(path)
     if path.exists():
         if not overwrite:
@@ -46,13 +51,20 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
         writer.set_custom_data("rsvo.severity", format(float(config.severity), ".12g"))
         writer.set_custom_data("rsvo.seed", str(config.seed))
         writer.set_custom_data("rsvo.lens", config.lens)
-        c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
+        if compressed is None:
+            c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
+        else:
+            c_img = writer.add_connection(bagio.IMAGE_TOPIC + "/compressed",
+                                          bagio.COMPRESSED_IMAGE_TYPE, typestore=ts)
+            writer.set_custom_data("rsvo.compressed", compressed)
         c_info = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE,
                                        typestore=ts)  # fmt: skip
         c_gt = writer.add_connection(bagio.GROUND_TRUTH_TOPIC, bagio.ODOMETRY_TYPE, typestore=ts)
         for frame in renderer:
             stamp_ns = round(frame.stamp * 1e9)
-            writer.write(c_img, stamp_ns, bagio.serialize(bagio.image_msg(stamp_ns, frame.image)))
+            img = bagio.image_msg(stamp_ns, frame.image) if compressed is None else \
+                bagio.compressed_image_msg(stamp_ns, frame.image, compressed)
+            writer.write(c_img, stamp_ns, bagio.serialize(img))
             writer.write(c_info, stamp_ns, bagio.serialize(
                 bagio.camera_info_msg(stamp_ns, K, config.width, config.height,
                                       config.lens_model)))
@@ -103,6 +115,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rosbag2 storage (default sqlite3)")
     p.add_argument("--seed", type=int, default=0, help="scene and motion seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT_BAG if it exists")
+    p.add_argument("--compressed", choices=bagio.COMPRESSIONS, default=None,
+                   help="write the images as sensor_msgs/CompressedImage on "
+                        f"{bagio.IMAGE_TOPIC}/compressed (image_transport's compressed; JPEG "
+                        f"quality {bagio.JPEG_QUALITY}) instead of raw sensor_msgs/Image")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -115,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
                              height=args.resolution[1], line_delay=args.line_delay,
                              seed=args.seed, lens=args.lens)  # fmt: skip
         summary = write_bag(args.out_bag, config, args.storage, args.overwrite,
-                            progress=not args.no_progress)
+                            progress=not args.no_progress, compressed=args.compressed)
     except (ValueError, FileExistsError) as exc:
         print(f"rsvo_synth: {exc}", file=sys.stderr)
         return EXIT_USAGE

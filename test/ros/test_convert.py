@@ -4,10 +4,19 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 
-from rsvo_ros.ros.convert import camera_from_info, covariance_for_msg, pose_components, to_gray
+from rsvo_ros.ros import bagio
+from rsvo_ros.ros.convert import (
+    camera_from_info,
+    compressed_to_gray,
+    covariance_for_msg,
+    image_to_gray,
+    pose_components,
+    to_gray,
+)
 from rsvo_ros.sim.synth import SynthConfig, render_sequence
 
 
@@ -42,6 +51,43 @@ def test_to_gray_rejects_bad_images(args, message):
 def _info(k, d=(), model="plumb_bob", width=320, height=180):
     return SimpleNamespace(k=list(k), d=list(d), distortion_model=model, width=width,
                            height=height)
+
+
+def _encoded(ext, img, params=()):
+    ok, buf = cv2.imencode(ext, img, list(params))
+    assert ok
+    return buf.reshape(-1)
+
+
+def test_compressed_images_decode_as_image_transport_writes_them(textured):
+    """sensor_msgs/CompressedImage: PNG exactly, JPEG within its artefacts, colour and 16 bit
+    as the raw encodings; the message dispatch (rosbags' CompressedImage has no encoding)."""
+    png = bagio.compressed_image_msg(0, textured, "png")
+    assert png.format == "mono8; png compressed mono8"
+    assert np.array_equal(image_to_gray(png), textured)
+    jpeg = image_to_gray(bagio.compressed_image_msg(0, textured, "jpeg"))
+    assert jpeg.shape == textured.shape
+    assert 0 < np.abs(jpeg.astype(int) - textured).mean() < 3.0
+    bgr = np.dstack([textured, textured // 2, textured // 3])  # not grey: the channel order counts
+    assert np.array_equal(compressed_to_gray(_encoded(".png", bgr), "bgr8; png compressed bgr8"),
+                          to_gray(bgr.ravel(), "bgr8", *textured.shape, 3 * textured.shape[1]))
+    rgb = bgr[..., ::-1]  # image_transport compresses rgb8 as it is: OpenCV reads it as BGR
+    assert np.array_equal(compressed_to_gray(_encoded(".png", np.ascontiguousarray(rgb)),
+                                             "rgb8; png compressed rgb8"),
+                          to_gray(rgb.ravel(), "rgb8", *textured.shape, 3 * textured.shape[1]))
+    m16 = textured.astype(np.uint16) << 8 | 0x7F
+    assert np.array_equal(compressed_to_gray(_encoded(".png", m16), "mono16; png compressed "
+                                             "mono16"), textured)  # fmt: skip
+
+
+@pytest.mark.parametrize("data, fmt, message", [
+    (np.zeros(0, np.uint8), "jpeg", "empty compressed image"),
+    (np.arange(200, dtype=np.uint8), "jpeg", "cannot decode the compressed image"),
+    (np.arange(200, dtype=np.uint8), "16UC1; compressedDepth png", "depth image"),
+])
+def test_compressed_images_that_cannot_be_used_say_why(data, fmt, message):
+    with pytest.raises(ValueError, match=message):
+        compressed_to_gray(data, fmt)
 
 
 def test_camera_from_info_reads_k_d_and_size():

@@ -8,15 +8,16 @@ import os
 import threading
 import time
 
+import cv2
 import numpy as np
 import pytest
 import rclpy
 from nav_msgs.msg import Odometry, Path
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from scipy.spatial.transform import Rotation
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
 
 from rsvo_ros.ros.node import RsvoNode
@@ -329,5 +330,61 @@ def test_line_delay_save_file_is_the_next_start(ros_context, tmp_path):
         h.feed(info, msgs[:3])
         assert h.node.pipeline.options.line_delay_auto
         assert h.node.pipeline.line_delay == 4.7e-5  # the start, until its own first estimate
+    finally:
+        h.close()
+
+
+def test_compressed_image_transport_subscribes_to_the_compressed_topic(ros_context):
+    """image_transport compressed: sensor_msgs/CompressedImage (PNG) published on
+    /camera/image_raw/compressed reaches the node over DDS and gives the raw images'
+    odometry; an undecodable one is counted as bad, and nothing on the raw topic is read."""
+    info, msgs = _frames(4)
+    inline = [Parameter("model", value="gs"), Parameter("async_mapping", value=False),
+              Parameter("image_qos_reliability", value="reliable")]
+    reference = Harness(ros_context, inline)
+    try:
+        reference.feed(info, msgs)
+        expected = {(o.header.stamp.sec, o.header.stamp.nanosec): o.pose.pose.position
+                    for o in reference.odom}
+    finally:
+        reference.close()
+    assert len(expected) == 4
+    compressed = []
+    for m in msgs:
+        img = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width)
+        ok, buf = cv2.imencode(".png", img)
+        assert ok
+        c = CompressedImage()
+        c.header, c.format, c.data = m.header, "mono8; png compressed mono8", buf.tobytes()
+        compressed.append(c)
+    h = Harness(ros_context, [*inline, Parameter("image_transport", value="compressed")])
+    try:
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        pub = h.client_node.create_publisher(CompressedImage, "/camera/image_raw/compressed", qos)
+        raw_pub = h.client_node.create_publisher(Image, "/camera/image_raw", qos)
+        t_end = time.monotonic() + 10
+        while pub.get_subscription_count() == 0 and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert pub.get_subscription_count() == 1
+        assert raw_pub.get_subscription_count() == 0
+        h.node._on_info(info)
+        for k, c in enumerate(compressed):
+            pub.publish(c)
+            t_end = time.monotonic() + 10
+            while h.node.stats["received"] < k + 1 and time.monotonic() < t_end:
+                time.sleep(0.01)
+            h._idle()
+        bad = CompressedImage()
+        bad.header, bad.format, bad.data = msgs[-1].header, "png", b"not an image"
+        pub.publish(bad)
+        t_end = time.monotonic() + 10
+        while h.node.stats["bad"] == 0 and time.monotonic() < t_end:
+            time.sleep(0.01)
+        assert h.node.stats["bad"] == 1 and h.node.stats["received"] == 5
+        assert len(h.odom) == 4
+        for o in h.odom:
+            a, b = o.pose.pose.position, expected[(o.header.stamp.sec, o.header.stamp.nanosec)]
+            assert np.allclose([a.x, a.y, a.z], [b.x, b.y, b.z], atol=1e-9)
+        assert np.linalg.norm([a.x, a.y, a.z]) > 0.1  # it moved
     finally:
         h.close()

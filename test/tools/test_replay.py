@@ -235,6 +235,60 @@ def test_unusable_bags_fail_with_one_line(vehicle_bag, tmp_path, capsys, case, m
     assert message in err and len(err.splitlines()) == 1
 
 
+def test_compressed_image_bags_replay_as_the_raw_ones(tmp_path, capsys):
+    """image_transport's compressed topic: PNG gives the raw bag's trajectory exactly, JPEG
+    one close to it; found without --image-topic when it is the bag's only camera; a frame
+    that does not decode is one counted skip."""
+    cfg = SynthConfig(frames=12, motion="vehicle", severity=1.0, width=320, height=180, seed=1)
+    runs = {}
+    for kind in ("raw", "png", "jpeg"):
+        bag = tmp_path / kind
+        write_bag(bag, cfg, "sqlite3", progress=False,
+                  compressed=None if kind == "raw" else kind)
+        assert (bagio.IMAGE_TOPIC + "/compressed" in _topics(bag)) == (kind != "raw")
+        out = tmp_path / f"out_{kind}"
+        assert replay_main([str(bag), "--output", str(out), "--no-progress"]) == 0
+        err = capsys.readouterr().err
+        assert ("using its only image topic /camera/image_raw/compressed" in err) == \
+            (kind != "raw")
+        runs[kind] = (json.loads((out / "summary.json").read_text()),
+                      (out / "trajectory.tum").read_text())
+    assert runs["png"][1] == runs["raw"][1]  # lossless: the same frames, the same poses
+    assert runs["png"][0]["image_topic"] == "/camera/image_raw/compressed"
+    ate = {k: v[0]["accuracy"]["ate_m"]["rmse"] for k, v in runs.items()}
+    assert runs["jpeg"][0]["frames_posed"] == 12
+    assert ate["jpeg"] < 2.0 * ate["raw"] + 0.01, ate
+
+    # one undecodable frame in the middle of a compressed bag
+    bad = tmp_path / "bad_jpeg"
+    renderer = SequenceRenderer(cfg)
+    ts = bagio.typestore()
+    with bagio.open_writer(bad, "sqlite3") as writer:
+        writer.set_custom_data(bagio.LINE_DELAY_KEY, str(cfg.tau))
+        ci = writer.add_connection("/cam/compressed", bagio.COMPRESSED_IMAGE_TYPE, typestore=ts)
+        cc = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE, typestore=ts)
+        for k, fr in enumerate(renderer):
+            stamp = round(fr.stamp * 1e9)
+            msg = bagio.compressed_image_msg(stamp, fr.image, "jpeg")
+            if k == 5:
+                msg.data = msg.data[:100]  # a cut-off JPEG
+            writer.write(cc, stamp, bagio.serialize(
+                bagio.camera_info_msg(stamp, renderer.K, cfg.width, cfg.height)))
+            writer.write(ci, stamp, bagio.serialize(msg))
+    out = tmp_path / "out_bad"
+    assert replay_main([str(bad), "--output", str(out), "--image-topic", "/cam/compressed",
+                        "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames_in"] == 12 and s["frames_posed"] == 11
+    assert s["skipped_reasons"] == {"cannot decode the compressed image": 1}
+    # a topic that is not an image says which ones are
+    code = replay_main([str(bad), "--output", str(tmp_path / "o2"), "--image-topic",
+                        bagio.CAMERA_INFO_TOPIC, "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and len(err.splitlines()) == 1
+    assert "is sensor_msgs/msg/CameraInfo, not" in err and "/cam/compressed" in err
+
+
 def test_console_script(vehicle_bag, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.replay", str(vehicle_bag),
                            "--output", str(tmp_path / "o"), "--model", "gs"],
