@@ -18,6 +18,8 @@ def generate_launch_description():
                               description="seconds per image row"),
         DeclareLaunchArgument("image", default_value="/camera/image_raw"),
         DeclareLaunchArgument("camera_info", default_value="/camera/camera_info"),
+        DeclareLaunchArgument("image_transport", default_value="raw",
+                              description="raw | compressed (image/compressed, JPEG or PNG)"),
     ]
     node = Node(
         package="rsvo_ros",
@@ -29,6 +31,7 @@ def generate_launch_description():
             "line_delay": LaunchConfiguration("line_delay"),
             "image_topic": LaunchConfiguration("image"),
             "camera_info_topic": LaunchConfiguration("camera_info"),
+            "image_transport": LaunchConfiguration("image_transport"),
         }],
     )
     return LaunchDescription([*args, node])
