@@ -16,23 +16,39 @@ import numpy as np
 from rsvo_ros.core.geometry import quat_xyzw_from_matrix
 from rsvo_ros.core.lens import LensModel
 
-SUPPORTED_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8")
+# sensor_msgs/image_encodings: (channels, bytes per channel) of each one taken
+_LAYOUT = {"mono8": (1, 1), "8UC1": (1, 1), "mono16": (1, 2), "16UC1": (1, 2),
+           "rgb8": (3, 1), "bgr8": (3, 1), "rgba8": (4, 1), "bgra8": (4, 1),
+           # 4:2:2 YUV of USB cameras (v4l2_camera, usb_cam): 2 bytes per pixel, Y in one
+           "yuv422": (2, 1), "uyvy": (2, 1), "yuv422_yuy2": (2, 1), "yuyv": (2, 1),
+           "bayer_rggb8": (1, 1), "bayer_bggr8": (1, 1), "bayer_gbrg8": (1, 1),
+           "bayer_grbg8": (1, 1)}  # fmt: skip
+SUPPORTED_ENCODINGS = tuple(_LAYOUT)
+# the luma byte of a YUV 4:2:2 pixel pair: UYVY (ROS "yuv422") odd, YUYV (YUY2) even
+_LUMA_OFFSET = {"yuv422": 1, "uyvy": 1, "yuv422_yuy2": 0, "yuyv": 0}
+# ROS names a Bayer pattern by its first two rows; OpenCV by the second row's middle pixels
+# (cv_bridge's table)
+_BAYER = {"bayer_rggb8": cv2.COLOR_BayerBG2GRAY, "bayer_bggr8": cv2.COLOR_BayerRG2GRAY,
+          "bayer_gbrg8": cv2.COLOR_BayerGR2GRAY, "bayer_grbg8": cv2.COLOR_BayerGB2GRAY}
+_COLOUR = {"rgb8": cv2.COLOR_RGB2GRAY, "bgr8": cv2.COLOR_BGR2GRAY, "rgba8": cv2.COLOR_RGBA2GRAY,
+           "bgra8": cv2.COLOR_BGRA2GRAY}
 
 COVARIANCE_UNKNOWN = 1e6  # what a non-finite covariance entry is published as
 
 
-def to_gray(data: np.ndarray, encoding: str, height: int, width: int, step: int) -> np.ndarray:
-    """uint8 (H, W) image from a sensor_msgs/Image payload.
+def to_gray(data: np.ndarray, encoding: str, height: int, width: int, step: int,
+            bigendian: bool = False) -> np.ndarray:  # fmt: skip
+    """uint8 (H, W) image from a sensor_msgs/Image payload (16-bit images keep their high
+    byte; ``bigendian``: the message's ``is_bigendian``, for 16-bit data).
 
     Raises ValueError naming the problem (unsupported encoding, size/step mismatch, empty).
     """
-    if encoding not in SUPPORTED_ENCODINGS:
+    if encoding not in _LAYOUT:
         raise ValueError(f"unsupported encoding {encoding!r} (supported: "
                          f"{', '.join(SUPPORTED_ENCODINGS)})")  # fmt: skip
     if height <= 0 or width <= 0:
         raise ValueError(f"empty image ({width}x{height})")
-    channels, itemsize = {"mono8": (1, 1), "mono16": (1, 2), "rgb8": (3, 1),
-                          "bgr8": (3, 1)}[encoding]  # fmt: skip
+    channels, itemsize = _LAYOUT[encoding]
     row_bytes = width * channels * itemsize
     if step < row_bytes:
         raise ValueError(f"step {step} is shorter than a row ({row_bytes} bytes)")
@@ -41,13 +57,18 @@ def to_gray(data: np.ndarray, encoding: str, height: int, width: int, step: int)
         raise ValueError(f"image data has {buf.size} bytes, {step * height} expected "
                          f"({width}x{height}, step {step})")  # fmt: skip
     rows = buf[: step * height].reshape(height, step)[:, :row_bytes]
-    if encoding == "mono8":
-        return np.ascontiguousarray(rows)
-    if encoding == "mono16":
-        return (rows.copy().view("<u2").reshape(height, width) >> 8).astype(np.uint8)
-    img = rows.reshape(height, width, 3)
-    code = cv2.COLOR_RGB2GRAY if encoding == "rgb8" else cv2.COLOR_BGR2GRAY
-    return cv2.cvtColor(np.ascontiguousarray(img), code)
+    if itemsize == 2:
+        return (rows.copy().view(">u2" if bigendian else "<u2").reshape(height, width)
+                >> 8).astype(np.uint8)  # fmt: skip
+    if encoding in _LUMA_OFFSET:
+        if width % 2:
+            raise ValueError(f"a {encoding} image needs an even width, got {width}")
+        return np.ascontiguousarray(rows[:, _LUMA_OFFSET[encoding]::2])
+    if channels == 1:
+        img = np.ascontiguousarray(rows)
+        return cv2.cvtColor(img, _BAYER[encoding]) if encoding in _BAYER else img
+    img = rows.reshape(height, width, channels)
+    return cv2.cvtColor(np.ascontiguousarray(img), _COLOUR[encoding])
 
 
 def compressed_to_gray(data: np.ndarray, fmt: str) -> np.ndarray:
@@ -86,7 +107,8 @@ def image_to_gray(msg) -> np.ndarray:
     ValueError as :func:`to_gray` and :func:`compressed_to_gray`."""
     if not hasattr(msg, "encoding") and hasattr(msg, "format"):
         return compressed_to_gray(msg.data, msg.format)
-    return to_gray(msg.data, msg.encoding, msg.height, msg.width, msg.step)
+    return to_gray(msg.data, msg.encoding, msg.height, msg.width, msg.step,
+                   bool(getattr(msg, "is_bigendian", 0)))
 
 
 def stamp_ns(header) -> int:

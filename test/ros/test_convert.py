@@ -35,10 +35,45 @@ def test_to_gray_accepts_the_supported_encodings(textured):
     assert np.array_equal(to_gray(m16, "mono16", h, w, 2 * w), textured)
     padded = np.hstack([textured, np.zeros((h, 4), np.uint8)])  # step > width
     assert np.array_equal(to_gray(padded.ravel(), "mono8", h, w, w + 4), textured)
+    big = (textured.astype(np.uint16) << 8).astype(">u2").view(np.uint8).ravel()  # is_bigendian
+    assert np.array_equal(to_gray(big, "mono16", h, w, 2 * w, bigendian=True), textured)
+    alpha = np.full_like(textured, 77)
+    for enc in ("rgba8", "bgra8"):
+        assert np.array_equal(to_gray(np.dstack([rgb, alpha]).ravel(), enc, h, w, 4 * w),
+                              textured)
+    # 4:2:2 YUV of USB cameras: the luma bytes are the grey image, whatever the chroma
+    chroma = np.full_like(textured, 128) ^ (textured & 7)
+    uyvy = np.dstack([chroma, textured]).ravel()  # U Y V Y ...
+    yuyv = np.dstack([textured, chroma]).ravel()  # Y U Y V ...
+    assert np.array_equal(to_gray(uyvy, "yuv422", h, w, 2 * w), textured)
+    assert np.array_equal(to_gray(yuyv, "yuv422_yuy2", h, w, 2 * w), textured)
+    with pytest.raises(ValueError, match="even width"):
+        to_gray(uyvy, "yuv422", h, w - 1, 2 * w)
+
+
+def test_bayer_images_are_demosaicked_by_their_own_pattern(textured):
+    """A colour image sampled through each ROS Bayer pattern (named by its first two rows)
+    comes back as its grey image; another pattern's reading is far off."""
+    g = textured.astype(float)
+    bgr = cv2.GaussianBlur(np.clip(np.dstack([0.3 * g, 0.9 * g, 255 - 0.8 * g]), 0, 255)
+                           .astype(np.uint8), (5, 5), 1.5)  # fmt: skip
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(float)
+    h, w = textured.shape
+    channel = {"b": 0, "g": 1, "r": 2}
+    for pattern in ("rggb", "bggr", "gbrg", "grbg"):
+        mosaic = np.zeros((h, w), np.uint8)
+        for (dy, dx), c in zip([(0, 0), (0, 1), (1, 0), (1, 1)], pattern, strict=True):
+            mosaic[dy::2, dx::2] = bgr[dy::2, dx::2, channel[c]]
+        errors = {}
+        for other in ("rggb", "bggr", "gbrg", "grbg"):
+            out = to_gray(mosaic.ravel(), f"bayer_{other}8", h, w, w).astype(float)
+            errors[other] = np.abs(out - grey)[4:-4, 4:-4].mean()
+        assert errors[pattern] < 1.0, errors
+        assert min(e for p, e in errors.items() if p != pattern) > 10.0, errors
 
 
 @pytest.mark.parametrize("args, message", [
-    (("yuv422", 10, 10, 20), "unsupported encoding"),
+    (("32FC1", 10, 10, 40), "unsupported encoding"),
     (("mono8", 0, 10, 10), "empty"),
     (("mono8", 10, 10, 5), "shorter than a row"),
     (("mono8", 10, 10, 10), "bytes"),  # data too short below

@@ -122,7 +122,7 @@ def _write_bad_bag(path: Path) -> int:
             stamp = 1_000_000_000 + round(fr.stamp * 1e9)
             msg = bagio.image_msg(stamp, fr.image)
             if k == 2:
-                msg.encoding = "yuv422"
+                msg.encoding = "32FC1"  # a depth image
             if k == 4:
                 msg.data = msg.data[: len(msg.data) // 2]
             writer.write(ci, stamp, bagio.serialize(msg))

@@ -48,7 +48,7 @@ def main():
         if bad:
             kind = (k // 3) % 4
             if kind == 0:
-                img.encoding = "yuv422"
+                img.encoding = "32FC1"  # a depth image
             elif kind == 1:
                 img.step = 100  # shorter than a row
             elif kind == 2:
