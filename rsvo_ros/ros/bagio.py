@@ -152,6 +152,42 @@ def deserialize(raw: bytes, msgtype: str):
     return typestore().deserialize_cdr(raw, msgtype)
 
 
+class BagReader:
+    """A recorded bag for reading: a rosbag2 directory (sqlite3 or mcap) or a ROS 1 ``.bag``
+    file (rosbags' AnyReader; ROS 1 message definitions come from the bag). ``connections``,
+    ``messages(connections=...)`` as rosbags' readers, and ``deserialize(raw, msgtype)`` for
+    the bag's own serialization. Raises whatever rosbags raises for an unreadable bag."""
+
+    def __init__(self, path):
+        path = Path(path)
+        self.ros1 = path.is_file()
+        if self.ros1:
+            from rosbags.highlevel import AnyReader
+
+            self._reader = AnyReader([path])
+            self._reader.open()
+            self.deserialize = self._reader.deserialize
+        else:
+            from rosbags.rosbag2 import Reader
+
+            self._reader = Reader(path)
+            self._reader.open()
+            self.deserialize = deserialize
+        self.connections = list(self._reader.connections)
+
+    def messages(self, connections=()):
+        return self._reader.messages(connections=connections)
+
+    def close(self) -> None:
+        self._reader.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 def storage_plugin(storage: str):
     from rosbags.rosbag2 import StoragePlugin
 

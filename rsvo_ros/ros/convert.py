@@ -134,11 +134,13 @@ def camera_from_info(msg) -> CameraIntrinsics:
     model other than ``plumb_bob``, ``rational_polynomial`` or ``equidistant`` (or none) or
     the wrong number of coefficients for it.
     """
-    K = np.asarray(msg.k, float).reshape(3, 3)
+    # ROS 1's CameraInfo (a ROS 1 bag through rosbags) spells K and D in capitals
+    K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, float).reshape(3, 3)
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError("camera info with an invalid K (non-finite or non-positive focal "
                          "length)")
-    lens = LensModel.create(str(msg.distortion_model), np.asarray(msg.d, float))
+    lens = LensModel.create(str(msg.distortion_model),
+                            np.asarray(msg.d if hasattr(msg, "d") else msg.D, float))
     return CameraIntrinsics(K, lens, int(msg.width), int(msg.height))
 
 

@@ -59,7 +59,11 @@ def main(argv: list[str] | None = None) -> int:
         reader = Reader(args.bag)
         reader.open()
     except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds
-        print(f"rsvo_play: cannot read bag {args.bag}: {exc}", file=sys.stderr)
+        hint = ""
+        if Path(args.bag).is_file():  # a ROS 1 .bag (rsvo_replay reads those directly)
+            hint = (f" (a ROS 1 bag? rsvo_play publishes rosbag2 only: rosbags-convert --src "
+                    f"{args.bag} --dst DIR)")
+        print(f"rsvo_play: cannot read bag {args.bag}: {exc}{hint}", file=sys.stderr)
         return EXIT_BAD_BAG
     conns = [c for c in reader.connections if args.topics is None or c.topic in args.topics]
     if not conns:

@@ -26,7 +26,7 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rsvo_calibrate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap)")
+    p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap) or ROS 1 .bag file")
     p.add_argument("--output", "-o", type=Path, default=Path("rsvo_line_delay.yaml"),
                    help="parameter file to write (default rsvo_line_delay.yaml)")
     p.add_argument("--image-topic", default=bagio.IMAGE_TOPIC)

@@ -31,13 +31,11 @@ def read_tum(path: Path) -> dict[int, np.ndarray]:
 
 
 def read_ground_truth(bag: Path, topic: str = bagio.GROUND_TRUTH_TOPIC) -> dict[int, np.ndarray]:
-    from rosbags.rosbag2 import Reader
-
     gt = {}
-    with Reader(bag) as reader:
+    with bagio.BagReader(bag) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
         for conn, _t, raw in reader.messages(connections=conns):
-            msg = bagio.deserialize(raw, conn.msgtype)
+            msg = reader.deserialize(raw, conn.msgtype)
             R, p = bagio.pose_of(msg.pose.pose)
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R, p

@@ -1,4 +1,5 @@
-"""rsvo_replay: the odometry pipeline over a recorded rosbag2, as fast as the machine allows.
+"""rsvo_replay: the odometry pipeline over a recorded rosbag2 (or a ROS 1 .bag), as fast as the
+machine allows.
 
 Streams the bag (memory does not grow with its length) and writes into ``--output``:
 ``trajectory.tum``, the ``odometry`` bag (``/rsvo/odom`` and ``/tf`` per frame, ``/rsvo/path`` at
@@ -155,8 +156,6 @@ def _cloud(points: np.ndarray, stamp_ns: int):
 
 def replay(cfg: ReplayConfig) -> dict:
     """Run the pipeline over ``cfg.bag``; returns the summary (also written to the output)."""
-    from rosbags.rosbag2 import Reader
-
     if cfg.model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}")
     if cfg.output.exists() and any(cfg.output.iterdir()) and not cfg.overwrite:
@@ -167,8 +166,7 @@ def replay(cfg: ReplayConfig) -> dict:
     if odom_bag.exists():
         shutil.rmtree(odom_bag)
     try:
-        reader = Reader(cfg.bag)
-        reader.open()
+        reader = bagio.BagReader(cfg.bag)
     except Exception as exc:  # rosbags raises several types for unreadable bags
         raise ReplayError(f"cannot read bag {cfg.bag}: {exc}") from None
     topics = {c.topic: c for c in reader.connections}
@@ -254,9 +252,9 @@ def replay(cfg: ReplayConfig) -> dict:
 
         bar = tqdm(total=n_images, desc="rsvo_replay", unit="frame", file=sys.stderr)
     # the first camera info, so that an image stamped with it (often written first) is usable
-    for _c, _t, raw in reader.messages(connections=[topics[cfg.camera_info_topic]]):
+    for c_info, _t, raw in reader.messages(connections=[topics[cfg.camera_info_topic]]):
         try:
-            camera = camera_from_info(bagio.deserialize(raw, bagio.CAMERA_INFO_TYPE))
+            camera = camera_from_info(reader.deserialize(raw, c_info.msgtype))
             break
         except Exception:  # noqa: BLE001 - a bad one is skipped, the next one may do
             continue
@@ -305,7 +303,7 @@ def replay(cfg: ReplayConfig) -> dict:
         try:
             for conn, _t, raw in messages():
                 try:
-                    msg = bagio.deserialize(raw, conn.msgtype)
+                    msg = reader.deserialize(raw, conn.msgtype)
                 except Exception as exc:
                     if conn.topic == cfg.image_topic:
                         skipped[f"corrupt message: {type(exc).__name__}"] += 1
@@ -727,7 +725,7 @@ def set_window_options(options: PipelineOptions, values: list[tuple[str, float]]
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rsvo_replay",
                                 description="Run rsvo_ros's odometry pipeline over a rosbag2.")
-    p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap)")
+    p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap) or ROS 1 .bag file")
     p.add_argument("--output", "-o", type=Path, required=True, help="output directory")
     p.add_argument("--model", choices=MODELS, default="rs", help="relative pose model (rs)")
     p.add_argument("--image-topic", default=bagio.IMAGE_TOPIC,

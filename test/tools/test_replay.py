@@ -289,6 +289,37 @@ def test_compressed_image_bags_replay_as_the_raw_ones(tmp_path, capsys):
     assert "is sensor_msgs/msg/CameraInfo, not" in err and "/cam/compressed" in err
 
 
+def test_a_ros1_bag_replays_as_its_rosbag2_original(vehicle_bag, tmp_path, capsys):
+    """A ROS 1 .bag (rosbags-convert of the rosbag2, CameraInfo's K and D in capitals):
+    the same trajectory and ground truth; it records no line delay, so the RS model asks for
+    one in one line."""
+    from rosbags.convert import convert
+    from rosbags.typesys import Stores, get_typestore
+
+    ros1 = tmp_path / "vehicle.bag"
+    convert([vehicle_bag], ros1, "sqlite3", 0, None, "none", None,
+            get_typestore(Stores.ROS1_NOETIC), [], [], [], [])  # fmt: skip
+    with bagio.BagReader(ros1) as reader:
+        assert reader.ros1
+        info = next(c for c in reader.connections if c.topic == bagio.CAMERA_INFO_TOPIC)
+        _c, _t, raw = next(iter(reader.messages(connections=[info])))
+        assert hasattr(reader.deserialize(raw, info.msgtype), "K")  # ROS 1's spelling
+    line_delay = bagio.custom_data(vehicle_bag)[bagio.LINE_DELAY_KEY]
+    outs = {}
+    for name, bag in (("ros2", vehicle_bag), ("ros1", ros1)):
+        outs[name] = tmp_path / name
+        assert replay_main([str(bag), "--output", str(outs[name]), "--line-delay", line_delay,
+                            "--no-progress"]) == 0
+    assert (outs["ros1"] / "trajectory.tum").read_text() == \
+        (outs["ros2"] / "trajectory.tum").read_text()
+    acc = [json.loads((outs[k] / "summary.json").read_text())["accuracy"] for k in outs]
+    assert acc[0]["matched_poses"] == acc[1]["matched_poses"] == 8  # the ground truth was read
+    capsys.readouterr()
+    assert replay_main([str(ros1), "--output", str(tmp_path / "o"), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "does not record rsvo.line_delay" in err and len(err.splitlines()) == 1
+
+
 def test_console_script(vehicle_bag, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.replay", str(vehicle_bag),
                            "--output", str(tmp_path / "o"), "--model", "gs"],
