@@ -133,6 +133,32 @@ def rigid_correction(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
     return D
 
 
+def interpolate_poses(stamps_ns: np.ndarray, T: np.ndarray, query_ns: np.ndarray,
+                      max_gap_ns: int) -> dict[int, np.ndarray]:  # fmt: skip
+    """Poses (4, 4) at ``query_ns`` from ``T`` (N, 4, 4) at sorted ``stamps_ns``: the position
+    linearly and the rotation along the geodesic between the two stamps around each query (a
+    stamp equal to a query gives its pose as is). Queries outside the stamps, or between two
+    more than ``max_gap_ns`` apart, are left out."""
+    stamps = np.asarray(stamps_ns, np.int64)
+    out: dict[int, np.ndarray] = {}
+    if len(stamps) == 0:
+        return out
+    for q in np.asarray(query_ns, np.int64).tolist():
+        j = int(np.searchsorted(stamps, q))
+        if j < len(stamps) and stamps[j] == q:
+            out[q] = np.array(T[j], float)
+            continue
+        if j == 0 or j == len(stamps) or stamps[j] - stamps[j - 1] > max_gap_ns:
+            continue
+        a = (q - stamps[j - 1]) / (stamps[j] - stamps[j - 1])
+        T0, T1 = T[j - 1], T[j]
+        Ti = np.eye(4)
+        Ti[:3, :3] = T0[:3, :3] @ so3_exp(a * so3_log(T0[:3, :3].T @ T1[:3, :3]))
+        Ti[:3, 3] = (1 - a) * T0[:3, 3] + a * T1[:3, 3]
+        out[q] = Ti
+    return out
+
+
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     """Angle of (..., 3, 3) rotations in degrees (the paper's Rodrigues error metric)."""
     cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)

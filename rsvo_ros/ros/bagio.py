@@ -116,12 +116,15 @@ def pose_msg(R: np.ndarray, p: np.ndarray):
     )
 
 
+def rotation_of(q) -> np.ndarray:
+    """(3, 3) of a geometry_msgs/Quaternion."""
+    return Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+
+
 def pose_of(pose_msg_) -> tuple[np.ndarray, np.ndarray]:
     """(R, p) of a geometry_msgs/Pose."""
-    q = pose_msg_.orientation
-    R = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
     pos = pose_msg_.position
-    return R, np.array([pos.x, pos.y, pos.z])
+    return rotation_of(pose_msg_.orientation), np.array([pos.x, pos.y, pos.z])
 
 
 def odometry_msg(stamp_ns: int, R: np.ndarray, p: np.ndarray, frame_id: str, child_frame_id: str,

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import stamp_ns
-from rsvo_ros.tools.replay import accuracy, sim3_aligned_positions
+from rsvo_ros.tools.replay import accuracy, ground_truth_of, sim3_aligned_positions
 
 
 def read_tum(path: Path) -> dict[int, np.ndarray]:
@@ -36,10 +36,7 @@ def read_ground_truth(bag: Path, topic: str = bagio.GROUND_TRUTH_TOPIC) -> dict[
         conns = [c for c in reader.connections if c.topic == topic]
         for conn, _t, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
-            R, p = bagio.pose_of(msg.pose.pose)
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R, p
-            gt[stamp_ns(msg.header)] = T
+            gt[stamp_ns(msg.header)] = ground_truth_of(msg, conn.msgtype)[0]
     return gt
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rsvo_ros.core.geometry import interpolate_poses
 from rsvo_ros.odometry.local_map import ACCELERATION_STD_RAD_S2
 from rsvo_ros.odometry.pairwise import (
     BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
@@ -219,6 +220,10 @@ def replay(cfg: ReplayConfig) -> dict:
         raise ReplayError(f"line delay must be finite and >= 0, got {line_delay}")
 
     gt_topic = cfg.ground_truth_topic if cfg.ground_truth_topic in topics else None
+    if gt_topic and topics[gt_topic].msgtype not in GROUND_TRUTH_TYPES:
+        reader.close()
+        raise ReplayError(f"ground truth topic {gt_topic} is {topics[gt_topic].msgtype}; "
+                          f"supported: {', '.join(GROUND_TRUTH_TYPES)}")
     wanted = [topics[cfg.image_topic], topics[cfg.camera_info_topic]]
     if gt_topic:
         wanted.append(topics[gt_topic])
@@ -317,13 +322,11 @@ def replay(cfg: ReplayConfig) -> dict:
                         skipped[f"camera info: {exc}"] += 1
                     continue
                 if conn.topic == gt_topic:
-                    R, p = bagio.pose_of(msg.pose.pose)
-                    T = np.eye(4)
-                    T[:3, :3], T[:3, 3] = R, p
-                    gt[stamp_ns(msg.header)] = T
-                    tw = msg.twist.twist
-                    gt_w[stamp_ns(msg.header)] = np.array([tw.angular.x, tw.angular.y,
-                                                           tw.angular.z])  # fmt: skip
+                    T, w = ground_truth_of(msg, conn.msgtype)
+                    if np.isfinite(T).all():
+                        gt[stamp_ns(msg.header)] = T
+                        if w is not None:
+                            gt_w[stamp_ns(msg.header)] = w
                     continue
                 images_read += 1
                 if cfg.max_frames is not None and images_read > cfg.max_frames:
@@ -441,6 +444,20 @@ def replay(cfg: ReplayConfig) -> dict:
             "history": pipeline.line_delay_history,
             "bag_line_delay_s": bag_line_delay,
         }
+    if gt:
+        gt_info = {"topic": gt_topic, "type": topics[gt_topic].msgtype, "poses": len(gt),
+                   "resampled": False}
+        posed = [m["stamp_ns"] for m in results_meta]
+        if posed and sum(s in gt for s in posed) < 0.5 * len(posed):
+            # a ground truth of its own rate (motion capture): its poses at the frames'
+            # stamps, between two of its own at most GT_MAX_GAP_S apart
+            stamps = np.array(sorted(gt))
+            gt = interpolate_poses(stamps, np.array([gt[s] for s in stamps]), np.array(posed),
+                                   round(GT_MAX_GAP_S * 1e9))  # fmt: skip
+            gt_w = {}  # twist at the frames' stamps: not resampled
+            gt_info["resampled"] = True
+            gt_info["frames_covered"] = len(gt)
+        summary["ground_truth"] = gt_info
     if gt and len(est) >= 3:
         _put_accuracy(summary, gt, est)
     if "accuracy" in summary:
@@ -522,6 +539,28 @@ def replay_two_pass(cfg: ReplayConfig) -> dict:
     with open(cfg.output / "summary.json", "w") as f:
         json.dump(summary, f, indent=1)
     return summary
+
+
+GROUND_TRUTH_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
+                      "geometry_msgs/msg/PoseWithCovarianceStamped",
+                      "geometry_msgs/msg/TransformStamped")
+GT_MAX_GAP_S = 0.2  # a resampled ground truth interpolates across gaps up to this
+
+
+def ground_truth_of(msg, msgtype: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """``T_world_camera`` (4, 4) of a ground-truth message (one of ``GROUND_TRUTH_TYPES``) and
+    its angular velocity (nav_msgs/Odometry's twist; None for the others)."""
+    T = np.eye(4)
+    if msgtype == "geometry_msgs/msg/TransformStamped":
+        tr = msg.transform.translation
+        T[:3, :3], T[:3, 3] = bagio.rotation_of(msg.transform.rotation), [tr.x, tr.y, tr.z]
+        return T, None
+    pose = msg.pose if msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
+    T[:3, :3], T[:3, 3] = bagio.pose_of(pose)
+    if msgtype != "nav_msgs/msg/Odometry":
+        return T, None
+    tw = msg.twist.twist
+    return T, np.array([tw.angular.x, tw.angular.y, tw.angular.z])
 
 
 def keyframe_summary(log: dict, gt_w: dict[int, np.ndarray], row0_time: float = 0.0) -> dict:

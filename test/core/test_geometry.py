@@ -126,3 +126,19 @@ def test_rigid_correction_is_rigid_even_when_chained_without_end(rng):
     # the plain product: far from a rotation (NaN by now)
     with np.errstate(invalid="ignore"):
         assert not abs(np.linalg.det(plain[:3, :3]) - 1.0) < 1e-6
+
+
+def test_interpolate_poses_between_stamps_and_not_across_gaps():
+    R1 = geo.so3_exp(np.array([0.0, 0.0, 0.4]))
+    T = np.stack([np.eye(4), np.eye(4), np.eye(4)])
+    T[1, :3, :3], T[1, :3, 3] = R1, [1.0, 2.0, 0.0]
+    T[2, :3, 3] = [5.0, 0.0, 0.0]
+    stamps = np.array([100, 200, 1000])
+    query = np.array([50, 100, 125, 150, 500, 1001])
+    out = geo.interpolate_poses(stamps, T, query, max_gap_ns=300)
+    assert sorted(out) == [100, 125, 150]  # before the first, in the gap, after the last: out
+    assert np.array_equal(out[100], T[0])
+    assert np.allclose(out[150][:3, 3], [0.5, 1.0, 0.0])
+    assert np.allclose(geo.so3_log(out[150][:3, :3]), [0.0, 0.0, 0.2])  # half the turn
+    assert np.allclose(geo.so3_log(out[125][:3, :3]), [0.0, 0.0, 0.1])
+    assert np.allclose(out[125][:3, :3] @ out[125][:3, :3].T, np.eye(3))

@@ -320,6 +320,57 @@ def test_a_ros1_bag_replays_as_its_rosbag2_original(vehicle_bag, tmp_path, capsy
     assert "does not record rsvo.line_delay" in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.parametrize("gt_type", ["geometry_msgs/msg/PoseStamped",
+                                     "geometry_msgs/msg/TransformStamped"])
+def test_a_motion_capture_ground_truth_is_resampled_at_the_frames(tmp_path, gt_type):
+    """Ground truth at its own rate (200 Hz, stamps between the frames', as from motion
+    capture), as PoseStamped or TransformStamped: interpolated at the frames, the accuracy is
+    the one with the ground truth at the frames' stamps."""
+    cfg = SynthConfig(frames=20, motion="vehicle", severity=1.0, width=320, height=180, seed=1)
+    ref_bag = tmp_path / "ref"
+    write_bag(ref_bag, cfg, "sqlite3", progress=False)
+    renderer = SequenceRenderer(cfg)
+    ts = bagio.typestore()
+    bag = tmp_path / "mocap"
+    with bagio.open_writer(bag, "sqlite3") as writer:
+        writer.set_custom_data(bagio.LINE_DELAY_KEY, str(cfg.tau))
+        ci = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
+        cc = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE, typestore=ts)
+        cg = writer.add_connection("/mocap", gt_type, typestore=ts)
+        for fr in renderer:
+            stamp = round(fr.stamp * 1e9)
+            writer.write(cc, stamp, bagio.serialize(
+                bagio.camera_info_msg(stamp, renderer.K, cfg.width, cfg.height)))
+            writer.write(ci, stamp, bagio.serialize(bagio.image_msg(stamp, fr.image)))
+        t_mocap = np.arange(-0.01, cfg.frames / 30.0 + 0.01, 0.005) + 0.0013
+        R, p = renderer.trajectory.pose(t_mocap)
+        for t, Rk, pk in zip(t_mocap, R, p, strict=True):
+            stamp = round(t * 1e9)
+            head = bagio.header(stamp, "world")
+            q = bagio.pose_msg(Rk, pk)
+            if gt_type.endswith("PoseStamped"):
+                msg = ts.types[gt_type](header=head, pose=q)
+            else:
+                tr = ts.types["geometry_msgs/msg/Vector3"](x=q.position.x, y=q.position.y,
+                                                           z=q.position.z)
+                msg = ts.types[gt_type](header=head, child_frame_id="camera", transform=ts.types[
+                    "geometry_msgs/msg/Transform"](translation=tr, rotation=q.orientation))
+            writer.write(cg, stamp, bagio.serialize(msg))
+    summaries = {}
+    for name, b, extra in (("ref", ref_bag, []), ("mocap", bag, ["--ground-truth-topic",
+                                                                  "/mocap"])):
+        out = tmp_path / f"out_{name}"
+        assert replay_main([str(b), "--output", str(out), "--no-progress", *extra]) == 0
+        summaries[name] = json.loads((out / "summary.json").read_text())
+    gt = summaries["mocap"]["ground_truth"]
+    assert gt["type"] == gt_type and gt["resampled"] and gt["frames_covered"] == 20
+    assert summaries["ref"]["ground_truth"]["resampled"] is False
+    a, b = (summaries[k]["accuracy"] for k in ("ref", "mocap"))
+    assert a["matched_poses"] == b["matched_poses"] == 20
+    assert b["ate_m"]["rmse"] == pytest.approx(a["ate_m"]["rmse"], rel=0.02, abs=2e-4)
+    assert b["rpe_rot_deg"]["mean"] == pytest.approx(a["rpe_rot_deg"]["mean"], rel=0.05, abs=2e-3)
+
+
 def test_console_script(vehicle_bag, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.replay", str(vehicle_bag),
                            "--output", str(tmp_path / "o"), "--model", "gs"],
