@@ -134,8 +134,18 @@ class RsvoNode(Node):
         self._clock_jump = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(seconds=-0.5),
                           on_clock_change=True), post_callback=self._on_clock_jump)
-        self.sub_info = self.create_subscription(CameraInfo, self.p["camera_info_topic"],
-                                                 self._on_info, qos_profile_sensor_data)
+        self.sub_info = None
+        if self.p.camera is None:
+            self.sub_info = self.create_subscription(CameraInfo, self.p["camera_info_topic"],
+                                                     self._on_info, qos_profile_sensor_data)
+        else:  # intrinsics from the calibration file: no camera info topic
+            cam = self.p.camera
+            self._camera = (cam.K, cam.lens, cam.width, cam.height)
+            with self._pipeline_lock:
+                self._ensure_pipeline()
+            self.get_logger().info(f"camera intrinsics from {self.p['camera_file']} "
+                                   f"({cam.width}x{cam.height}, f = {cam.K[0, 0]:.1f} px); "
+                                   f"{self.p['camera_info_topic']} is not subscribed")
         self.sub_image = None
         self._qos_deadline = time.monotonic() + QOS_WAIT_S
         if self.p["image_qos_reliability"] == "auto":

@@ -27,6 +27,8 @@ from rsvo_ros.odometry.pairwise import (
 )
 from rsvo_ros.odometry.pipeline import BACKENDS
 from rsvo_ros.odometry.tracker import MAX_REFINE_WINDOW_PX, refine_window_or_auto
+from rsvo_ros.ros.camera_file import load_camera_file
+from rsvo_ros.ros.convert import CameraIntrinsics
 from rsvo_ros.twoview.estimator import MODELS
 
 QOS_CHOICES = ("auto", "reliable", "best_effort")
@@ -64,6 +66,14 @@ PARAMETERS = {
         "or PNG) on image_topic + '/compressed', as image_transport's compressed plugin "
         "publishes it (decoded here; JPEG artefacts cost some accuracy).", IMAGE_TRANSPORTS)),
     "camera_info_topic": ("/camera/camera_info", _str("Input sensor_msgs/CameraInfo topic.")),
+    "camera_file": ("", _str(
+        "Intrinsics from a calibration file instead of camera_info_topic (not subscribed then): "
+        "a ROS camera calibration YAML (camera_calibration, camera_info_manager) or a Kalibr "
+        "camchain YAML (pinhole; radtan, equidistant or no distortion); a path or a file:// "
+        "URL. '' (default): the topic.")),
+    "camera_file_entry": ("", _str(
+        "camera_file is a Kalibr camchain of several cameras: the entry to use (cam0, cam1, "
+        "...); '' (default): the only one, or cam0.")),
     "odom_topic": ("/rsvo/odom", _str("Output nav_msgs/Odometry topic.")),
     "path_topic": ("/rsvo/path", _str("Output nav_msgs/Path topic.")),
     "debug_image_topic": ("/rsvo/debug_image", _str("Output debug image (tracks, inliers).")),
@@ -161,6 +171,7 @@ class NodeConfig:
 
     values: dict
     T_base_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    camera: CameraIntrinsics | None = None  # from camera_file (None: from the topic)
 
     def __getitem__(self, name: str):
         return self.values[name]
@@ -227,7 +238,14 @@ def read_config(values: dict) -> NodeConfig:
     T_base_cam = np.eye(4)
     T_base_cam[:3, :3] = Rotation.from_quat(tf[3:]).as_matrix()
     T_base_cam[:3, 3] = tf[:3]
-    return NodeConfig(dict(values), T_base_cam)
+    camera = None
+    if p["camera_file"]:
+        path = p["camera_file"].removeprefix("file://")
+        try:
+            camera = load_camera_file(path, p["camera_file_entry"] or None)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"parameter camera_file: {exc}") from None
+    return NodeConfig(dict(values), T_base_cam, camera)
 
 
 def image_subscription(p: NodeConfig | dict) -> tuple[str, str]:

@@ -31,6 +31,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="parameter file to write (default rsvo_line_delay.yaml)")
     p.add_argument("--image-topic", default=bagio.IMAGE_TOPIC)
     p.add_argument("--camera-info-topic", default=bagio.CAMERA_INFO_TOPIC)
+    p.add_argument("--camera-file", type=Path, default=None, metavar="YAML",
+                   help="intrinsics from a ROS camera calibration or Kalibr camchain YAML "
+                        "instead of the camera info topic")
+    p.add_argument("--camera-entry", default=None, metavar="CAM",
+                   help="the Kalibr camchain's entry (default cam0)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="use only the first N images (default: all)")
     p.add_argument("--no-progress", action="store_true")
@@ -46,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
         cfg = ReplayConfig(args.bag, Path(tmp) / "replay", "rs", args.image_topic,
                            args.camera_info_topic, progress=not args.no_progress,
                            options=PipelineOptions(line_delay_auto=True),
-                           max_frames=args.max_frames)  # fmt: skip
+                           max_frames=args.max_frames, camera_file=args.camera_file,
+                           camera_entry=args.camera_entry)  # fmt: skip
         try:
             summary = replay(cfg)
         except ReplayError as exc:

@@ -46,6 +46,7 @@ from rsvo_ros.odometry.tracker import (
 )
 from rsvo_ros.odometry.window import WindowOptions
 from rsvo_ros.ros import bagio
+from rsvo_ros.ros.camera_file import load_camera_file
 from rsvo_ros.ros.convert import (
     POINT_FIELD_FLOAT32,
     XYZ_FIELDS,
@@ -96,6 +97,9 @@ class ReplayConfig:
     options: PipelineOptions = field(default_factory=PipelineOptions)
     max_frames: int | None = None  # stop after this many images (None: the whole bag)
     refine_window_px: int | None = None  # TrackerOptions.refine_window_px (None: by backend)
+    # intrinsics from a calibration file (ROS or Kalibr YAML) instead of the camera info topic
+    camera_file: Path | None = None
+    camera_entry: str | None = None  # the Kalibr camchain's entry (cam0, cam1, ...)
 
 
 def _pose_line(stamp: int, T: np.ndarray) -> str:
@@ -192,10 +196,18 @@ def replay(cfg: ReplayConfig) -> dict:
                           f", not sensor_msgs/Image or CompressedImage"
                           f"{' (image topics: ' + ', '.join(images) + ')' if images else ''}; "
                           "give --image-topic")
-    if cfg.camera_info_topic not in topics:
+    file_camera: CameraIntrinsics | None = None
+    if cfg.camera_file is not None:
+        try:
+            file_camera = load_camera_file(cfg.camera_file, cfg.camera_entry)
+        except (OSError, ValueError) as exc:
+            reader.close()
+            raise ReplayError(f"camera file {cfg.camera_file}: {exc}") from None
+    elif cfg.camera_info_topic not in topics:
         reader.close()
         raise ReplayError(f"no camera info topic {cfg.camera_info_topic} in {cfg.bag} "
-                          "(the intrinsics K are needed); give --camera-info-topic")
+                          "(the intrinsics K are needed); give --camera-info-topic or "
+                          "--camera-file")
     line_delay = cfg.line_delay
     bag_text = bagio.custom_data(cfg.bag).get(bagio.LINE_DELAY_KEY)
     try:
@@ -224,7 +236,8 @@ def replay(cfg: ReplayConfig) -> dict:
         reader.close()
         raise ReplayError(f"ground truth topic {gt_topic} is {topics[gt_topic].msgtype}; "
                           f"supported: {', '.join(GROUND_TRUTH_TYPES)}")
-    wanted = [topics[cfg.image_topic], topics[cfg.camera_info_topic]]
+    info_topic = None if file_camera is not None else cfg.camera_info_topic
+    wanted = [topics[cfg.image_topic]] + ([topics[info_topic]] if info_topic else [])
     if gt_topic:
         wanted.append(topics[gt_topic])
     n_images = topics[cfg.image_topic].msgcount
@@ -257,7 +270,9 @@ def replay(cfg: ReplayConfig) -> dict:
 
         bar = tqdm(total=n_images, desc="rsvo_replay", unit="frame", file=sys.stderr)
     # the first camera info, so that an image stamped with it (often written first) is usable
-    for c_info, _t, raw in reader.messages(connections=[topics[cfg.camera_info_topic]]):
+    camera = file_camera
+    for c_info, _t, raw in reader.messages(connections=[topics[info_topic]] if info_topic
+                                           else []):  # fmt: skip
         try:
             camera = camera_from_info(reader.deserialize(raw, c_info.msgtype))
             break
@@ -315,7 +330,7 @@ def replay(cfg: ReplayConfig) -> dict:
                         if bar is not None:
                             bar.update(1)
                     continue
-                if conn.topic == cfg.camera_info_topic:
+                if conn.topic == info_topic:
                     try:
                         camera = camera_from_info(msg)
                     except ValueError as exc:
@@ -418,7 +433,9 @@ def replay(cfg: ReplayConfig) -> dict:
         "window_options_changed": changed_window_options(options.window),
         # the line delay used at the end (line_delay auto: the estimate, see line_delay_auto)
         "line_delay_s": pipeline.line_delay if pipeline is not None else line_delay,
-        "image_topic": cfg.image_topic, "frames_in_bag": n_images,
+        "image_topic": cfg.image_topic,
+        "camera_file": None if cfg.camera_file is None else str(cfg.camera_file),
+        "frames_in_bag": n_images,
         "frames_in": frames_in, "frames_posed": sum(len(t) for t in trajectories),
         "frames_estimated": statuses.get("posed", 0), "frames_held": statuses.get("held", 0),
         "frames_skipped": sum(skipped.values()), "skipped_reasons": dict(skipped),
@@ -772,6 +789,13 @@ def build_parser() -> argparse.ArgumentParser:
                         f"compressed, e.g. {bagio.IMAGE_TOPIC}/compressed) topic "
                         f"(default {bagio.IMAGE_TOPIC})")
     p.add_argument("--camera-info-topic", default=bagio.CAMERA_INFO_TOPIC)
+    p.add_argument("--camera-file", type=Path, default=None, metavar="YAML",
+                   help="intrinsics from a calibration file instead of the camera info topic: "
+                        "ROS camera calibration YAML (camera_calibration, camera_info_manager) "
+                        "or Kalibr camchain YAML (pinhole; radtan, equidistant or no "
+                        "distortion)")
+    p.add_argument("--camera-entry", default=None, metavar="CAM",
+                   help="with a Kalibr camchain of several cameras: the entry (default cam0)")
     p.add_argument("--ground-truth-topic", default=bagio.GROUND_TRUTH_TOPIC)
     p.add_argument("--line-delay", type=_line_delay_arg, default=None, metavar="S|auto",
                    help=f"seconds per image row (default: the bag's {bagio.LINE_DELAY_KEY}); "
@@ -865,7 +889,8 @@ def main(argv: list[str] | None = None) -> int:
                        args.camera_info_topic, args.ground_truth_topic,
                        None if auto else args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
-                       options, args.max_frames, refine_window)  # fmt: skip
+                       options, args.max_frames, refine_window, args.camera_file,
+                       args.camera_entry)  # fmt: skip
     try:
         s = replay_two_pass(cfg) if args.two_pass else replay(cfg)
     except (ValueError, FileExistsError) as exc:

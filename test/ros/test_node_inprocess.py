@@ -388,3 +388,31 @@ def test_compressed_image_transport_subscribes_to_the_compressed_topic(ros_conte
         assert np.linalg.norm([a.x, a.y, a.z]) > 0.1  # it moved
     finally:
         h.close()
+
+
+def test_a_camera_file_stands_in_for_camera_info(ros_context, tmp_path):
+    """camera_file (a ROS camera calibration YAML): the camera info topic is not subscribed
+    and images alone give odometry; a bad file stops the node at start-up naming it."""
+    info, msgs = _frames(4)
+    K = np.array(info.k).reshape(3, 3)
+    calib = tmp_path / "camera.yaml"
+    calib.write_text(f"image_width: {info.width}\nimage_height: {info.height}\n"
+                     f"camera_matrix:\n  rows: 3\n  cols: 3\n  data: {K.ravel().tolist()}\n"
+                     "distortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n"
+                     "  cols: 5\n  data: [0, 0, 0, 0, 0]\n")
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("camera_file", value=f"file://{calib}")])
+    try:
+        assert h.node.sub_info is None
+        for m in msgs:  # no camera info at all
+            h.node._on_image(m)
+            h._idle()
+        assert len(h.odom) == 4 and h.node.stats["bad"] == 0
+        last = h.odom[-1].pose.pose.position
+        assert np.linalg.norm([last.x, last.y, last.z]) > 0.1
+    finally:
+        h.close()
+    with pytest.raises(ValueError, match="parameter camera_file: .*neither a ROS camera"):
+        (tmp_path / "bad.yaml").write_text("foo: 1\n")
+        RsvoNode(context=ros_context,
+                 parameter_overrides=[Parameter("camera_file", value=str(tmp_path / "bad.yaml"))])

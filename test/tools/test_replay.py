@@ -371,6 +371,46 @@ def test_a_motion_capture_ground_truth_is_resampled_at_the_frames(tmp_path, gt_t
     assert b["rpe_rot_deg"]["mean"] == pytest.approx(a["rpe_rot_deg"]["mean"], rel=0.05, abs=2e-3)
 
 
+def test_a_calibration_file_stands_in_for_the_camera_info_topic(vehicle_bag, tmp_path,
+                                                                 capsys):  # fmt: skip
+    """--camera-file (a Kalibr camchain here): a bag without camera info replays as the bag
+    with it; a bad file is a one-line error."""
+    K = SequenceRenderer(SynthConfig(width=320, height=180)).K
+    calib = tmp_path / "camchain.yaml"
+    fu_fv_pu_pv = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+    calib.write_text("cam0:\n  camera_model: pinhole\n  distortion_model: none\n"
+                     f"  distortion_coeffs: []\n  intrinsics: {fu_fv_pu_pv}\n"
+                     "  resolution: [320, 180]\n")
+    bare = tmp_path / "no_info"
+    with bagio.BagReader(vehicle_bag) as reader, \
+            bagio.open_writer(bare, "sqlite3") as writer:  # fmt: skip
+        writer.set_custom_data(bagio.LINE_DELAY_KEY,
+                               bagio.custom_data(vehicle_bag)[bagio.LINE_DELAY_KEY])
+        ts = bagio.typestore()
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=ts)
+                 for c in reader.connections if c.topic != bagio.CAMERA_INFO_TOPIC}
+        for c, t, raw in reader.messages(connections=[c for c in reader.connections
+                                                      if c.id in conns]):
+            writer.write(conns[c.id], t, raw)
+    assert bagio.CAMERA_INFO_TOPIC not in _topics(bare)
+    assert replay_main([str(bare), "--output", str(tmp_path / "o0"), "--no-progress"]) == 1
+    assert "give --camera-info-topic or --camera-file" in capsys.readouterr().err
+    outs = {}
+    for name, bag, extra in (("topic", vehicle_bag, []),
+                             ("file", bare, ["--camera-file", str(calib)])):
+        outs[name] = tmp_path / name
+        assert replay_main([str(bag), "--output", str(outs[name]), "--no-progress",
+                            *extra]) == 0
+    assert (outs["file"] / "trajectory.tum").read_text() == \
+        (outs["topic"] / "trajectory.tum").read_text()
+    assert json.loads((outs["file"] / "summary.json").read_text())["camera_file"] == str(calib)
+    capsys.readouterr()
+    assert replay_main([str(bare), "--output", str(tmp_path / "o1"), "--camera-file",
+                        str(calib), "--camera-entry", "cam1", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "no camera 'cam1'" in err and len(err.splitlines()) == 1
+
+
 def test_console_script(vehicle_bag, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.replay", str(vehicle_bag),
                            "--output", str(tmp_path / "o"), "--model", "gs"],
