@@ -127,14 +127,25 @@ class CameraIntrinsics:
     height: int
 
 
-def camera_from_info(msg) -> CameraIntrinsics:
+def camera_from_info(msg, rectified: bool = False) -> CameraIntrinsics:
     """:class:`CameraIntrinsics` of a sensor_msgs/CameraInfo (rclpy or rosbags).
+
+    ``rectified``: the images are already rectified (image_proc's ``image_rect``): the
+    intrinsics are the projection ``P``'s left 3x3 and there is no lens to undo.
 
     Raises ValueError for a non-finite or non-positive focal length, and for a distortion
     model other than ``plumb_bob``, ``rational_polynomial`` or ``equidistant`` (or none) or
     the wrong number of coefficients for it.
     """
-    # ROS 1's CameraInfo (a ROS 1 bag through rosbags) spells K and D in capitals
+    if rectified:
+        # ROS 1's CameraInfo (a ROS 1 bag through rosbags) spells P in capitals
+        P = np.asarray(msg.p if hasattr(msg, "p") else msg.P, float).reshape(3, 4)
+        K = P[:, :3].copy()
+        if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError("camera info with an invalid P for rectified images (non-finite "
+                             "or non-positive focal length)")
+        return CameraIntrinsics(K, None, int(msg.width), int(msg.height))
+    # ROS 1's CameraInfo spells K and D in capitals
     K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, float).reshape(3, 3)
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError("camera info with an invalid K (non-finite or non-positive focal "

@@ -182,7 +182,7 @@ class RsvoNode(Node):
 
     def _on_info(self, msg: CameraInfo) -> None:
         try:
-            cam = camera_from_info(msg)
+            cam = camera_from_info(msg, bool(self.p["image_rectified"]))
         except ValueError as exc:
             self._bad(str(exc))
             return

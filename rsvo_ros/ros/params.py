@@ -66,6 +66,9 @@ PARAMETERS = {
         "or PNG) on image_topic + '/compressed', as image_transport's compressed plugin "
         "publishes it (decoded here; JPEG artefacts cost some accuracy).", IMAGE_TRANSPORTS)),
     "camera_info_topic": ("/camera/camera_info", _str("Input sensor_msgs/CameraInfo topic.")),
+    "image_rectified": (False, _bool(
+        "The images are rectified (image_proc's image_rect): the intrinsics are CameraInfo's "
+        "projection P and no lens distortion is removed (false: the raw image, K and D).")),
     "camera_file": ("", _str(
         "Intrinsics from a calibration file instead of camera_info_topic (not subscribed then): "
         "a ROS camera calibration YAML (camera_calibration, camera_info_manager) or a Kalibr "

@@ -100,6 +100,7 @@ class ReplayConfig:
     # intrinsics from a calibration file (ROS or Kalibr YAML) instead of the camera info topic
     camera_file: Path | None = None
     camera_entry: str | None = None  # the Kalibr camchain's entry (cam0, cam1, ...)
+    rectified: bool = False  # rectified images: CameraInfo's P, no lens
 
 
 def _pose_line(stamp: int, T: np.ndarray) -> str:
@@ -274,7 +275,7 @@ def replay(cfg: ReplayConfig) -> dict:
     for c_info, _t, raw in reader.messages(connections=[topics[info_topic]] if info_topic
                                            else []):  # fmt: skip
         try:
-            camera = camera_from_info(reader.deserialize(raw, c_info.msgtype))
+            camera = camera_from_info(reader.deserialize(raw, c_info.msgtype), cfg.rectified)
             break
         except Exception:  # noqa: BLE001 - a bad one is skipped, the next one may do
             continue
@@ -332,7 +333,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     continue
                 if conn.topic == info_topic:
                     try:
-                        camera = camera_from_info(msg)
+                        camera = camera_from_info(msg, cfg.rectified)
                     except ValueError as exc:
                         skipped[f"camera info: {exc}"] += 1
                     continue
@@ -435,6 +436,7 @@ def replay(cfg: ReplayConfig) -> dict:
         "line_delay_s": pipeline.line_delay if pipeline is not None else line_delay,
         "image_topic": cfg.image_topic,
         "camera_file": None if cfg.camera_file is None else str(cfg.camera_file),
+        "rectified": cfg.rectified,
         "frames_in_bag": n_images,
         "frames_in": frames_in, "frames_posed": sum(len(t) for t in trajectories),
         "frames_estimated": statuses.get("posed", 0), "frames_held": statuses.get("held", 0),
@@ -794,6 +796,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "ROS camera calibration YAML (camera_calibration, camera_info_manager) "
                         "or Kalibr camchain YAML (pinhole; radtan, equidistant or no "
                         "distortion)")
+    p.add_argument("--rectified", action="store_true",
+                   help="the images are rectified (image_proc's image_rect): the intrinsics are "
+                        "CameraInfo's projection P, and no lens distortion is removed")
     p.add_argument("--camera-entry", default=None, metavar="CAM",
                    help="with a Kalibr camchain of several cameras: the entry (default cam0)")
     p.add_argument("--ground-truth-topic", default=bagio.GROUND_TRUTH_TOPIC)
@@ -890,7 +895,7 @@ def main(argv: list[str] | None = None) -> int:
                        None if auto else args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
                        options, args.max_frames, refine_window, args.camera_file,
-                       args.camera_entry)  # fmt: skip
+                       args.camera_entry, args.rectified)  # fmt: skip
     try:
         s = replay_two_pass(cfg) if args.two_pass else replay(cfg)
     except (ValueError, FileExistsError) as exc:

@@ -139,6 +139,18 @@ def test_camera_from_info_reads_k_d_and_size():
         == "equidistant"
 
 
+def test_camera_from_info_of_rectified_images_takes_p_and_no_lens():
+    K = np.array([[400.0, 0, 160], [0, 410.0, 90], [0, 0, 1]])
+    info = _info(K.ravel(), [0.1, 0, 0, 0, 0])
+    info.p = [380.0, 0, 150, 0, 0, 385.0, 92, 0, 0, 0, 1, 0]  # the rectified camera
+    cam = camera_from_info(info, rectified=True)
+    assert np.array_equal(cam.K, [[380.0, 0, 150], [0, 385.0, 92], [0, 0, 1]])
+    assert cam.lens is None and (cam.width, cam.height) == (320, 180)
+    info.p = [0.0] * 12  # a CameraInfo without P cannot describe rectified images
+    with pytest.raises(ValueError, match="invalid P"):
+        camera_from_info(info, rectified=True)
+
+
 @pytest.mark.parametrize("k, d, model, message", [
     ([0.0] * 9, [], "plumb_bob", "invalid K"),
     ([np.nan] + [0.0] * 8, [], "plumb_bob", "invalid K"),

@@ -416,3 +416,21 @@ def test_a_camera_file_stands_in_for_camera_info(ros_context, tmp_path):
         (tmp_path / "bad.yaml").write_text("foo: 1\n")
         RsvoNode(context=ros_context,
                  parameter_overrides=[Parameter("camera_file", value=str(tmp_path / "bad.yaml"))])
+
+
+def test_rectified_images_use_the_projection_and_no_lens(ros_context):
+    """image_rectified: CameraInfo's P is the camera and its D is not applied (image_rect)."""
+    info, msgs = _frames(3)
+    info.d = [-0.3, 0.1, 0.0, 0.0, 0.0]
+    info.distortion_model = "plumb_bob"
+    info.p = [*info.k[:3], 0.0, *info.k[3:6], 0.0, *info.k[6:], 0.0]
+    info.k = [1.2 * x for x in info.k[:8]] + [1.0]  # the raw camera's: not used
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("image_rectified", value=True)])
+    try:
+        h.feed(info, msgs)
+        assert len(h.odom) == 3
+        assert h.node.pipeline.D is None
+        assert np.array_equal(h.node.pipeline.K, np.array(info.p).reshape(3, 4)[:, :3])
+    finally:
+        h.close()

@@ -411,6 +411,36 @@ def test_a_calibration_file_stands_in_for_the_camera_info_topic(vehicle_bag, tmp
     assert "no camera 'cam1'" in err and len(err.splitlines()) == 1
 
 
+def test_rectified_images_take_the_projection_and_no_lens(vehicle_bag, tmp_path):
+    """--rectified (image_rect with the raw camera's CameraInfo): P's intrinsics and no
+    undistortion. The bag's undistorted images with a lens in their CameraInfo replay as the
+    lens-free original with the flag, and differently without it."""
+    rect = tmp_path / "rect"
+    with bagio.BagReader(vehicle_bag) as reader, \
+            bagio.open_writer(rect, "sqlite3") as writer:  # fmt: skip
+        writer.set_custom_data(bagio.LINE_DELAY_KEY,
+                               bagio.custom_data(vehicle_bag)[bagio.LINE_DELAY_KEY])
+        ts = bagio.typestore()
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=ts)
+                 for c in reader.connections}
+        for c, t, raw in reader.messages(connections=reader.connections):
+            if c.topic == bagio.CAMERA_INFO_TOPIC:
+                msg = reader.deserialize(raw, c.msgtype)
+                K = np.array(msg.k).reshape(3, 3)
+                msg.d = np.array([-0.3, 0.1, 0.001, 0.002, 0.0])  # the raw camera's lens
+                msg.k = (K * [[1.1, 1, 1.1], [1, 1.1, 1.1], [1, 1, 1]]).ravel()  # its K
+                raw = bagio.serialize(msg)
+            writer.write(conns[c.id], t, raw)
+    runs = {}
+    for name, bag, extra in (("original", vehicle_bag, []), ("rect", rect, ["--rectified"]),
+                             ("raw", rect, [])):
+        out = tmp_path / name
+        assert replay_main([str(bag), "--output", str(out), "--no-progress", *extra]) == 0
+        runs[name] = (out / "trajectory.tum").read_text()
+    assert runs["rect"] == runs["original"]
+    assert runs["raw"] != runs["original"]  # K and the lens were applied to rectified images
+
+
 def test_console_script(vehicle_bag, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.replay", str(vehicle_bag),
                            "--output", str(tmp_path / "o"), "--model", "gs"],
