@@ -197,6 +197,18 @@ def replay(cfg: ReplayConfig) -> dict:
                           f", not sensor_msgs/Image or CompressedImage"
                           f"{' (image topics: ' + ', '.join(images) + ')' if images else ''}; "
                           "give --image-topic")
+    infos = sorted(t for t, c in topics.items() if c.msgtype == bagio.CAMERA_INFO_TYPE)
+    if cfg.camera_file is None and cfg.camera_info_topic == bagio.CAMERA_INFO_TOPIC \
+            and cfg.camera_info_topic not in topics and infos:
+        # the default is not there: the image topic's sibling (image_transport's layout:
+        # NS/image_raw[/compressed] beside NS/camera_info), else the bag's only camera info
+        base = cfg.image_topic.removesuffix("/compressed").rsplit("/", 1)[0]
+        sibling = f"{base}/camera_info"
+        pick = sibling if sibling in infos else (infos[0] if len(infos) == 1 else None)
+        if pick is not None:
+            cfg = dataclasses.replace(cfg, camera_info_topic=pick)
+            print(f"rsvo_replay: {bagio.CAMERA_INFO_TOPIC} is not in the bag; using {pick}"
+                  f"{' (beside the image topic)' if pick == sibling else ''}", file=sys.stderr)
     file_camera: CameraIntrinsics | None = None
     if cfg.camera_file is not None:
         try:
@@ -206,9 +218,10 @@ def replay(cfg: ReplayConfig) -> dict:
             raise ReplayError(f"camera file {cfg.camera_file}: {exc}") from None
     elif cfg.camera_info_topic not in topics:
         reader.close()
+        known = f"camera info topics: {', '.join(infos)}" if infos else "none in the bag"
         raise ReplayError(f"no camera info topic {cfg.camera_info_topic} in {cfg.bag} "
-                          "(the intrinsics K are needed); give --camera-info-topic or "
-                          "--camera-file")
+                          f"(the intrinsics K are needed; {known}); give --camera-info-topic "
+                          "or --camera-file")
     line_delay = cfg.line_delay
     bag_text = bagio.custom_data(cfg.bag).get(bagio.LINE_DELAY_KEY)
     try:

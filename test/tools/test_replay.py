@@ -441,6 +441,47 @@ def test_rectified_images_take_the_projection_and_no_lens(vehicle_bag, tmp_path)
     assert runs["raw"] != runs["original"]  # K and the lens were applied to rectified images
 
 
+def test_the_image_topics_own_camera_info_is_found_beside_it(vehicle_bag, tmp_path, capsys):
+    """Two cameras (/cam0, /cam1), no /camera/camera_info: --image-topic /cam1/image_raw (or
+    its compressed topic) takes /cam1/camera_info, not the other camera's."""
+    two = tmp_path / "two_cams"
+    with bagio.BagReader(vehicle_bag) as reader, \
+            bagio.open_writer(two, "sqlite3") as writer:  # fmt: skip
+        writer.set_custom_data(bagio.LINE_DELAY_KEY,
+                               bagio.custom_data(vehicle_bag)[bagio.LINE_DELAY_KEY])
+        ts = bagio.typestore()
+        out = {}
+        for cam in ("cam0", "cam1"):
+            out[cam, "img"] = writer.add_connection(f"/{cam}/image_raw", bagio.IMAGE_TYPE,
+                                                    typestore=ts)  # fmt: skip
+            out[cam, "info"] = writer.add_connection(f"/{cam}/camera_info",
+                                                     bagio.CAMERA_INFO_TYPE, typestore=ts)
+        for c, t, raw in reader.messages(connections=reader.connections):
+            if c.topic == bagio.IMAGE_TOPIC:
+                for cam in ("cam0", "cam1"):
+                    writer.write(out[cam, "img"], t, raw)
+            elif c.topic == bagio.CAMERA_INFO_TOPIC:
+                writer.write(out["cam1", "info"], t, raw)
+                msg = reader.deserialize(raw, c.msgtype)
+                msg.k = np.asarray(msg.k) * [1.3, 1, 1, 1, 1.3, 1, 1, 1, 1]  # another camera
+                writer.write(out["cam0", "info"], t, bagio.serialize(msg))
+    runs = {}
+    for name, bag, extra in (("ref", vehicle_bag, []),
+                             ("cam1", two, ["--image-topic", "/cam1/image_raw"]),
+                             ("cam0", two, ["--image-topic", "/cam0/image_raw"])):
+        o = tmp_path / name
+        assert replay_main([str(bag), "--output", str(o), "--no-progress", *extra]) == 0
+        runs[name] = (o / "trajectory.tum").read_text()
+        if name != "ref":
+            assert f"using /{name}/camera_info (beside the image topic)" in \
+                capsys.readouterr().err
+    assert runs["cam1"] == runs["ref"] and runs["cam0"] != runs["ref"]
+    capsys.readouterr()
+    assert replay_main([str(two), "--output", str(tmp_path / "o"), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()  # two cameras: which image topic is not guessed
+    assert "image topics: /cam0/image_raw, /cam1/image_raw" in err
+
+
 def test_console_script(vehicle_bag, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.replay", str(vehicle_bag),
                            "--output", str(tmp_path / "o"), "--model", "gs"],
