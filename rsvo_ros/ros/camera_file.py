@@ -50,7 +50,12 @@ def _checked(K: np.ndarray, lens: LensModel | None, width, height) -> CameraIntr
     return CameraIntrinsics(K, lens, w, h)
 
 
-def _from_ros(doc: dict) -> CameraIntrinsics:
+def _from_ros(doc: dict, rectified: bool) -> CameraIntrinsics:
+    if rectified:  # image_rect: the projection's left 3x3, no lens (as from a CameraInfo's P)
+        P = _number_list((doc.get("projection_matrix") or {}).get("data"),
+                         "projection_matrix.data (rectified images)", 12)  # fmt: skip
+        return _checked(P.reshape(3, 4)[:, :3].copy(), None, doc.get("image_width"),
+                        doc.get("image_height"))  # fmt: skip
     K = _number_list((doc.get("camera_matrix") or {}).get("data"), "camera_matrix.data", 9)
     coeffs = _number_list((doc.get("distortion_coefficients") or {}).get("data", []),
                           "distortion_coefficients.data")  # fmt: skip
@@ -74,10 +79,12 @@ def _from_kalibr(entry: dict, name: str) -> CameraIntrinsics:
     return _checked(K, lens, size[0], size[1])
 
 
-def load_camera_file(path: str | Path, camera: str | None = None) -> CameraIntrinsics:
+def load_camera_file(path: str | Path, camera: str | None = None,
+                     rectified: bool = False) -> CameraIntrinsics:  # fmt: skip
     """The intrinsics in ``path`` (ROS camera calibration or Kalibr camchain YAML, see the
-    module). Raises ValueError naming what is wrong or missing (and OSError for an unreadable
-    file)."""
+    module). ``rectified``: for rectified images, the ROS file's ``projection_matrix`` and no
+    lens (a Kalibr camchain holds no rectified camera: an error). Raises ValueError naming
+    what is wrong or missing (and OSError for an unreadable file)."""
     import yaml
 
     with open(Path(path).expanduser()) as f:
@@ -88,7 +95,7 @@ def load_camera_file(path: str | Path, camera: str | None = None) -> CameraIntri
     if not isinstance(doc, dict):
         raise ValueError(f"{path} holds no calibration (a YAML mapping is expected)")
     if "camera_matrix" in doc:
-        return _from_ros(doc)
+        return _from_ros(doc, rectified)
     cams = {k: v for k, v in doc.items() if isinstance(v, dict) and "intrinsics" in v}
     if not cams:
         raise ValueError(f"{path} is neither a ROS camera calibration (camera_matrix) nor a "
@@ -97,4 +104,8 @@ def load_camera_file(path: str | Path, camera: str | None = None) -> CameraIntri
         camera = next(iter(cams)) if len(cams) == 1 else "cam0"
     if camera not in cams:
         raise ValueError(f"{path} has no camera {camera!r} (cameras: {', '.join(cams)})")
+    if rectified:
+        raise ValueError(f"{path} is a Kalibr camchain, which holds the raw camera only; for "
+                         "rectified images give the rectified camera's calibration (ROS YAML "
+                         "with projection_matrix)")
     return _from_kalibr(cams[camera], camera)

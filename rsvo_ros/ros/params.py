@@ -68,7 +68,8 @@ PARAMETERS = {
     "camera_info_topic": ("/camera/camera_info", _str("Input sensor_msgs/CameraInfo topic.")),
     "image_rectified": (False, _bool(
         "The images are rectified (image_proc's image_rect): the intrinsics are CameraInfo's "
-        "projection P and no lens distortion is removed (false: the raw image, K and D).")),
+        "projection P (with camera_file: its projection_matrix) and no lens distortion is "
+        "removed (false: the raw image, K and D).")),
     "camera_file": ("", _str(
         "Intrinsics from a calibration file instead of camera_info_topic (not subscribed then): "
         "a ROS camera calibration YAML (camera_calibration, camera_info_manager) or a Kalibr "
@@ -245,7 +246,8 @@ def read_config(values: dict) -> NodeConfig:
     if p["camera_file"]:
         path = p["camera_file"].removeprefix("file://")
         try:
-            camera = load_camera_file(path, p["camera_file_entry"] or None)
+            camera = load_camera_file(path, p["camera_file_entry"] or None,
+                                      bool(p["image_rectified"]))
         except (OSError, ValueError) as exc:
             raise ValueError(f"parameter camera_file: {exc}") from None
     return NodeConfig(dict(values), T_base_cam, camera)

@@ -212,7 +212,7 @@ def replay(cfg: ReplayConfig) -> dict:
     file_camera: CameraIntrinsics | None = None
     if cfg.camera_file is not None:
         try:
-            file_camera = load_camera_file(cfg.camera_file, cfg.camera_entry)
+            file_camera = load_camera_file(cfg.camera_file, cfg.camera_entry, cfg.rectified)
         except (OSError, ValueError) as exc:
             reader.close()
             raise ReplayError(f"camera file {cfg.camera_file}: {exc}") from None
@@ -811,7 +811,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "distortion)")
     p.add_argument("--rectified", action="store_true",
                    help="the images are rectified (image_proc's image_rect): the intrinsics are "
-                        "CameraInfo's projection P, and no lens distortion is removed")
+                        "CameraInfo's projection P (with --camera-file: the ROS file's "
+                        "projection_matrix), and no lens distortion is removed")
     p.add_argument("--camera-entry", default=None, metavar="CAM",
                    help="with a Kalibr camchain of several cameras: the entry (default cam0)")
     p.add_argument("--ground-truth-topic", default=bagio.GROUND_TRUTH_TOPIC)

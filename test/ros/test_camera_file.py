@@ -24,6 +24,10 @@ rectification_matrix:
   rows: 3
   cols: 3
   data: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [480.0, 0.0, 321.0, 0.0, 0.0, 482.0, 239.0, 0.0, 0.0, 0.0, 1.0, 0.0]
 """
 
 KALIBR_YAML = """\
@@ -59,6 +63,17 @@ def test_a_ros_calibration_file_gives_k_the_lens_and_the_size(tmp_path):
     assert (cam.width, cam.height) == (640, 480)
     no_lens = ROS_YAML.replace("[-0.1, 0.02, 0.001, -0.002, 0.0]", "[0, 0, 0, 0, 0]")
     assert load_camera_file(_file(tmp_path, no_lens)).lens is None
+
+
+def test_rectified_images_take_the_files_projection_and_no_lens(tmp_path):
+    cam = load_camera_file(_file(tmp_path, ROS_YAML), rectified=True)
+    assert np.array_equal(cam.K, [[480.0, 0, 321.0], [0, 482.0, 239.0], [0, 0, 1]])
+    assert cam.lens is None and (cam.width, cam.height) == (640, 480)
+    no_p = ROS_YAML[:ROS_YAML.index("projection_matrix")]
+    with pytest.raises(ValueError, match="projection_matrix.data"):
+        load_camera_file(_file(tmp_path, no_p, "no_p.yaml"), rectified=True)
+    with pytest.raises(ValueError, match="Kalibr camchain, which holds the raw camera only"):
+        load_camera_file(_file(tmp_path, KALIBR_YAML, "k.yaml"), rectified=True)
 
 
 def test_a_kalibr_camchain_gives_the_chosen_camera(tmp_path):
