@@ -795,7 +795,8 @@ def set_window_options(options: PipelineOptions, values: list[tuple[str, float]]
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rsvo_replay",
-                                description="Run rsvo_ros's odometry pipeline over a rosbag2.")
+                                description="Run rsvo_ros's odometry pipeline over a rosbag2 "
+                                            "or a ROS 1 bag.")
     p.add_argument("bag", type=Path, help="rosbag2 directory (sqlite3 or mcap) or ROS 1 .bag file")
     p.add_argument("--output", "-o", type=Path, required=True, help="output directory")
     p.add_argument("--model", choices=MODELS, default="rs", help="relative pose model (rs)")
