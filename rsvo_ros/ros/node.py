@@ -15,7 +15,6 @@ import time
 from collections import deque
 from pathlib import Path as FilePath
 
-import cv2
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -47,6 +46,7 @@ from rsvo_ros.ros.convert import (
     stamp_ns,
     xyz_cloud_data,
 )
+from rsvo_ros.ros.draw import draw_tracks
 from rsvo_ros.ros.params import (
     PARAMETERS,
     help_text,
@@ -479,24 +479,8 @@ class RsvoNode(Node):
 
 
 def _debug_image(msg: Image, gray: np.ndarray, res: FrameResult) -> Image:
-    """Tracks as in the paper's Fig. 1: inliers green, outliers red, with their displacement
-    (window tracking: grey for tracks with no map point yet)."""
-    img = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
-    if res.pts_prev is not None and res.pts_curr is not None:
-        n = len(res.pts_curr)
-        inl = res.inliers
-        if inl is None or len(inl) != n:
-            rel = res.relative
-            inl = rel.inliers if rel is not None and len(rel.inliers) == n else np.zeros(n, bool)
-        rejected = res.outliers if res.outliers is not None and len(res.outliers) == n else ~inl
-        for p0, p1, ok, bad in zip(res.pts_prev, res.pts_curr, inl, rejected, strict=True):
-            color = (0, 200, 0) if ok else (0, 0, 255) if bad else (160, 160, 160)
-            a = (int(round(p0[0])), int(round(p0[1])))
-            b = (int(round(p1[0])), int(round(p1[1])))
-            cv2.line(img, a, b, color, 1)
-            cv2.circle(img, b, 2, color, -1)
-    cv2.putText(img, f"{res.status} inliers {100 * res.inlier_ratio:.0f}%", (8, 20),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 0), 1)
+    """The frame's tracks (:func:`rsvo_ros.ros.draw.draw_tracks`) as a bgr8 Image."""
+    img = draw_tracks(gray, res)
     out = Image()
     out.header = msg.header
     out.height, out.width = img.shape[:2]

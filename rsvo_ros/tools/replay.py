@@ -59,6 +59,7 @@ from rsvo_ros.ros.convert import (
     stamp_ns,
     xyz_cloud_data,
 )
+from rsvo_ros.ros.draw import draw_tracks
 from rsvo_ros.twoview.estimator import MODELS
 
 EXIT_OK, EXIT_BAD_BAG, EXIT_USAGE = 0, 1, 2
@@ -101,6 +102,7 @@ class ReplayConfig:
     camera_file: Path | None = None
     camera_entry: str | None = None  # the Kalibr camchain's entry (cam0, cam1, ...)
     rectified: bool = False  # rectified images: CameraInfo's P, no lens
+    debug_video: Path | None = None  # an MP4 of every processed frame with its tracks drawn
 
 
 def _pose_line(stamp: int, T: np.ndarray) -> str:
@@ -164,6 +166,8 @@ def replay(cfg: ReplayConfig) -> dict:
     """Run the pipeline over ``cfg.bag``; returns the summary (also written to the output)."""
     if cfg.model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}")
+    if cfg.debug_video is not None and not Path(cfg.debug_video).parent.is_dir():
+        raise ValueError(f"--debug-video: folder {Path(cfg.debug_video).parent} does not exist")
     if cfg.output.exists() and any(cfg.output.iterdir()) and not cfg.overwrite:
         if (cfg.output / "odometry").exists():
             raise FileExistsError(f"{cfg.output} already holds a replay; pass --overwrite")
@@ -292,6 +296,7 @@ def replay(cfg: ReplayConfig) -> dict:
             break
         except Exception:  # noqa: BLE001 - a bad one is skipped, the next one may do
             continue
+    video = None if cfg.debug_video is None else DebugVideo(cfg.debug_video)
     writer = bagio.open_writer(odom_bag, "sqlite3")
     ts = bagio.typestore()
     with writer, open(cfg.output / "trajectory.tum", "w") as tum:
@@ -389,6 +394,8 @@ def replay(cfg: ReplayConfig) -> dict:
                         traceback.print_exc(file=sys.stderr)
                     skipped[key] += 1
                     continue
+                if video is not None:
+                    video.add(stamp, draw_tracks(gray, res))
                 if res.status == "skipped":
                     skipped[res.reason.split(" (")[0]] += 1
                     continue
@@ -423,6 +430,8 @@ def replay(cfg: ReplayConfig) -> dict:
                 write_map(results_meta[-1]["stamp_ns"])  # the final map and keyframes
             finish_path()
             reader.close()
+            if video is not None:
+                video.close()
             if bar is not None:
                 bar.close()
     wall = time.perf_counter() - t_start
@@ -450,6 +459,8 @@ def replay(cfg: ReplayConfig) -> dict:
         "image_topic": cfg.image_topic,
         "camera_file": None if cfg.camera_file is None else str(cfg.camera_file),
         "rectified": cfg.rectified,
+        "debug_video": None if video is None else {"path": str(cfg.debug_video),
+                                                   "frames": video.frames},
         "frames_in_bag": n_images,
         "frames_in": frames_in, "frames_posed": sum(len(t) for t in trajectories),
         "frames_estimated": statuses.get("posed", 0), "frames_held": statuses.get("held", 0),
@@ -571,6 +582,51 @@ def replay_two_pass(cfg: ReplayConfig) -> dict:
     with open(cfg.output / "summary.json", "w") as f:
         json.dump(summary, f, indent=1)
     return summary
+
+
+class DebugVideo:
+    """An MP4 (OpenCV's mp4v) of drawn frames, its rate from the first two stamps (the
+    first frame is held until the second comes; a lone frame is written at 30 frames/s)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.frames = 0
+        self._writer = None
+        self._first: tuple[int, np.ndarray] | None = None
+
+    def _open(self, fps: float, image: np.ndarray) -> None:
+        import cv2
+
+        self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"),
+                                       float(np.clip(fps, 1.0, 240.0)),
+                                       (image.shape[1], image.shape[0]))  # fmt: skip
+        if not self._writer.isOpened():
+            raise ReplayError(f"cannot write the debug video {self.path} (OpenCV's mp4v)")
+
+    def add(self, stamp_ns: int, image: np.ndarray) -> None:
+        if self._writer is None and self._first is None:
+            self._first = (stamp_ns, image)
+            return
+        if self._writer is None:
+            dt = (stamp_ns - self._first[0]) * 1e-9
+            self._open(1.0 / dt if dt > 0 else 30.0, self._first[1])
+            self._write(self._first[1])
+        self._write(image)
+
+    def _write(self, image: np.ndarray) -> None:
+        h, w = image.shape[:2]
+        if self.frames and (w, h) != self._size:
+            return  # the camera changed size mid-bag: the video keeps its first size
+        self._size = (w, h)
+        self._writer.write(image)
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is None and self._first is not None:
+            self._open(30.0, self._first[1])
+            self._write(self._first[1])
+        if self._writer is not None:
+            self._writer.release()
 
 
 GROUND_TRUTH_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
@@ -814,6 +870,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the images are rectified (image_proc's image_rect): the intrinsics are "
                         "CameraInfo's projection P (with --camera-file: the ROS file's "
                         "projection_matrix), and no lens distortion is removed")
+    p.add_argument("--debug-video", type=Path, default=None, metavar="MP4",
+                   help="also write every processed frame with its tracks drawn (inliers "
+                        "green, outliers red, tracks with no map point grey), as the node's "
+                        "debug image, into this MP4")
     p.add_argument("--camera-entry", default=None, metavar="CAM",
                    help="with a Kalibr camchain of several cameras: the entry (default cam0)")
     p.add_argument("--ground-truth-topic", default=bagio.GROUND_TRUTH_TOPIC)
@@ -910,7 +970,7 @@ def main(argv: list[str] | None = None) -> int:
                        None if auto else args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
                        options, args.max_frames, refine_window, args.camera_file,
-                       args.camera_entry, args.rectified)  # fmt: skip
+                       args.camera_entry, args.rectified, args.debug_video)  # fmt: skip
     try:
         s = replay_two_pass(cfg) if args.two_pass else replay(cfg)
     except (ValueError, FileExistsError) as exc:

@@ -482,6 +482,32 @@ def test_the_image_topics_own_camera_info_is_found_beside_it(vehicle_bag, tmp_pa
     assert "image topics: /cam0/image_raw, /cam1/image_raw" in err
 
 
+def test_the_debug_video_holds_every_processed_frame_with_its_tracks(vehicle_bag, tmp_path,
+                                                                     capsys):  # fmt: skip
+    import cv2
+
+    video = tmp_path / "tracks.mp4"
+    out = tmp_path / "o"
+    assert replay_main([str(vehicle_bag), "--output", str(out), "--debug-video", str(video),
+                        "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["debug_video"] == {"path": str(video), "frames": 8}
+    cap = cv2.VideoCapture(str(video))
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame)
+    assert len(frames) == 8 and frames[0].shape == (180, 320, 3)
+    assert abs(cap.get(cv2.CAP_PROP_FPS) - 30.0) < 0.5  # the bag's rate
+    green = [int(((f[..., 1] > 150) & (f[..., 0] < 80) & (f[..., 2] < 80)).sum()) for f in frames]
+    assert green[0] < 20 and min(green[1:]) > 100, green  # the first frame has no pair yet
+    assert replay_main([str(vehicle_bag), "--output", str(tmp_path / "o2"), "--debug-video",
+                        str(tmp_path / "nope" / "v.mp4"), "--no-progress"]) == 2
+    assert "folder" in capsys.readouterr().err
+
+
 def test_console_script(vehicle_bag, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rsvo_ros.tools.replay", str(vehicle_bag),
                            "--output", str(tmp_path / "o"), "--model", "gs"],
