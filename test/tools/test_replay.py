@@ -371,6 +371,22 @@ def test_a_motion_capture_ground_truth_is_resampled_at_the_frames(tmp_path, gt_t
     assert b["rpe_rot_deg"]["mean"] == pytest.approx(a["rpe_rot_deg"]["mean"], rel=0.05, abs=2e-3)
 
 
+def _rewrite_bag(src: Path, dst: Path, rewrite) -> None:
+    """Copy ``src`` (and its line delay) into the rosbag2 ``dst``, each message through
+    ``rewrite(conn, raw, reader)``: the ``(topic, msgtype, raw)`` to write for it (none:
+    dropped)."""
+    ts = bagio.typestore()
+    with bagio.BagReader(src) as reader, bagio.open_writer(dst, "sqlite3") as writer:
+        writer.set_custom_data(bagio.LINE_DELAY_KEY,
+                               bagio.custom_data(src)[bagio.LINE_DELAY_KEY])
+        conns = {}
+        for c, t, raw in reader.messages(connections=reader.connections):
+            for topic, msgtype, data in rewrite(c, raw, reader):
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+                writer.write(conns[topic], t, data)
+
+
 def test_a_calibration_file_stands_in_for_the_camera_info_topic(vehicle_bag, tmp_path,
                                                                  capsys):  # fmt: skip
     """--camera-file (a Kalibr camchain here): a bag without camera info replays as the bag
@@ -382,16 +398,8 @@ def test_a_calibration_file_stands_in_for_the_camera_info_topic(vehicle_bag, tmp
                      f"  distortion_coeffs: []\n  intrinsics: {fu_fv_pu_pv}\n"
                      "  resolution: [320, 180]\n")
     bare = tmp_path / "no_info"
-    with bagio.BagReader(vehicle_bag) as reader, \
-            bagio.open_writer(bare, "sqlite3") as writer:  # fmt: skip
-        writer.set_custom_data(bagio.LINE_DELAY_KEY,
-                               bagio.custom_data(vehicle_bag)[bagio.LINE_DELAY_KEY])
-        ts = bagio.typestore()
-        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=ts)
-                 for c in reader.connections if c.topic != bagio.CAMERA_INFO_TOPIC}
-        for c, t, raw in reader.messages(connections=[c for c in reader.connections
-                                                      if c.id in conns]):
-            writer.write(conns[c.id], t, raw)
+    _rewrite_bag(vehicle_bag, bare, lambda c, raw, _r: [] if c.topic == bagio.CAMERA_INFO_TOPIC
+                 else [(c.topic, c.msgtype, raw)])  # fmt: skip
     assert bagio.CAMERA_INFO_TOPIC not in _topics(bare)
     assert replay_main([str(bare), "--output", str(tmp_path / "o0"), "--no-progress"]) == 1
     assert "give --camera-info-topic or --camera-file" in capsys.readouterr().err
@@ -415,22 +423,17 @@ def test_rectified_images_take_the_projection_and_no_lens(vehicle_bag, tmp_path)
     """--rectified (image_rect with the raw camera's CameraInfo): P's intrinsics and no
     undistortion. The bag's undistorted images with a lens in their CameraInfo replay as the
     lens-free original with the flag, and differently without it."""
+    def with_a_lens(c, raw, reader):
+        if c.topic == bagio.CAMERA_INFO_TOPIC:
+            msg = reader.deserialize(raw, c.msgtype)
+            K = np.array(msg.k).reshape(3, 3)
+            msg.d = np.array([-0.3, 0.1, 0.001, 0.002, 0.0])  # the raw camera's lens
+            msg.k = (K * [[1.1, 1, 1.1], [1, 1.1, 1.1], [1, 1, 1]]).ravel()  # its K
+            raw = bagio.serialize(msg)
+        return [(c.topic, c.msgtype, raw)]
+
     rect = tmp_path / "rect"
-    with bagio.BagReader(vehicle_bag) as reader, \
-            bagio.open_writer(rect, "sqlite3") as writer:  # fmt: skip
-        writer.set_custom_data(bagio.LINE_DELAY_KEY,
-                               bagio.custom_data(vehicle_bag)[bagio.LINE_DELAY_KEY])
-        ts = bagio.typestore()
-        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=ts)
-                 for c in reader.connections}
-        for c, t, raw in reader.messages(connections=reader.connections):
-            if c.topic == bagio.CAMERA_INFO_TOPIC:
-                msg = reader.deserialize(raw, c.msgtype)
-                K = np.array(msg.k).reshape(3, 3)
-                msg.d = np.array([-0.3, 0.1, 0.001, 0.002, 0.0])  # the raw camera's lens
-                msg.k = (K * [[1.1, 1, 1.1], [1, 1.1, 1.1], [1, 1, 1]]).ravel()  # its K
-                raw = bagio.serialize(msg)
-            writer.write(conns[c.id], t, raw)
+    _rewrite_bag(vehicle_bag, rect, with_a_lens)
     runs = {}
     for name, bag, extra in (("original", vehicle_bag, []), ("rect", rect, ["--rectified"]),
                              ("raw", rect, [])):
@@ -444,27 +447,18 @@ def test_rectified_images_take_the_projection_and_no_lens(vehicle_bag, tmp_path)
 def test_the_image_topics_own_camera_info_is_found_beside_it(vehicle_bag, tmp_path, capsys):
     """Two cameras (/cam0, /cam1), no /camera/camera_info: --image-topic /cam1/image_raw (or
     its compressed topic) takes /cam1/camera_info, not the other camera's."""
+    def two_cameras(c, raw, reader):
+        if c.topic == bagio.IMAGE_TOPIC:
+            return [(f"/{cam}/image_raw", c.msgtype, raw) for cam in ("cam0", "cam1")]
+        if c.topic != bagio.CAMERA_INFO_TOPIC:
+            return []
+        msg = reader.deserialize(raw, c.msgtype)
+        msg.k = np.asarray(msg.k) * [1.3, 1, 1, 1, 1.3, 1, 1, 1, 1]  # another camera
+        return [("/cam1/camera_info", c.msgtype, raw),
+                ("/cam0/camera_info", c.msgtype, bagio.serialize(msg))]
+
     two = tmp_path / "two_cams"
-    with bagio.BagReader(vehicle_bag) as reader, \
-            bagio.open_writer(two, "sqlite3") as writer:  # fmt: skip
-        writer.set_custom_data(bagio.LINE_DELAY_KEY,
-                               bagio.custom_data(vehicle_bag)[bagio.LINE_DELAY_KEY])
-        ts = bagio.typestore()
-        out = {}
-        for cam in ("cam0", "cam1"):
-            out[cam, "img"] = writer.add_connection(f"/{cam}/image_raw", bagio.IMAGE_TYPE,
-                                                    typestore=ts)  # fmt: skip
-            out[cam, "info"] = writer.add_connection(f"/{cam}/camera_info",
-                                                     bagio.CAMERA_INFO_TYPE, typestore=ts)
-        for c, t, raw in reader.messages(connections=reader.connections):
-            if c.topic == bagio.IMAGE_TOPIC:
-                for cam in ("cam0", "cam1"):
-                    writer.write(out[cam, "img"], t, raw)
-            elif c.topic == bagio.CAMERA_INFO_TOPIC:
-                writer.write(out["cam1", "info"], t, raw)
-                msg = reader.deserialize(raw, c.msgtype)
-                msg.k = np.asarray(msg.k) * [1.3, 1, 1, 1, 1.3, 1, 1, 1, 1]  # another camera
-                writer.write(out["cam0", "info"], t, bagio.serialize(msg))
+    _rewrite_bag(vehicle_bag, two, two_cameras)
     runs = {}
     for name, bag, extra in (("ref", vehicle_bag, []),
                              ("cam1", two, ["--image-topic", "/cam1/image_raw"]),
