@@ -94,12 +94,8 @@ def compressed_to_gray(data: np.ndarray, fmt: str) -> np.ndarray:
     if img.ndim == 2:
         return np.ascontiguousarray(img)
     # OpenCV decodes colour as BGR; image_transport compresses bgr8, or rgb8 as if it were bgr8
-    rgb = fmt.lower().rstrip().endswith(("rgb8", "rgba8"))
-    if img.shape[2] == 4:
-        code = cv2.COLOR_RGBA2GRAY if rgb else cv2.COLOR_BGRA2GRAY
-    else:
-        code = cv2.COLOR_RGB2GRAY if rgb else cv2.COLOR_BGR2GRAY
-    return cv2.cvtColor(img, code)
+    order = "rgb" if fmt.lower().rstrip().endswith(("rgb8", "rgba8")) else "bgr"
+    return cv2.cvtColor(img, _COLOUR[order + ("a8" if img.shape[2] == 4 else "8")])
 
 
 def image_to_gray(msg) -> np.ndarray:
@@ -127,6 +123,12 @@ class CameraIntrinsics:
     height: int
 
 
+def _info_field(msg, name: str):
+    """A CameraInfo matrix by its ROS 2 name (``k``, ``d``, ``p``); ROS 1's CameraInfo (a ROS 1
+    bag through rosbags) spells them in capitals."""
+    return getattr(msg, name) if hasattr(msg, name) else getattr(msg, name.upper())
+
+
 def camera_from_info(msg, rectified: bool = False) -> CameraIntrinsics:
     """:class:`CameraIntrinsics` of a sensor_msgs/CameraInfo (rclpy or rosbags).
 
@@ -138,20 +140,18 @@ def camera_from_info(msg, rectified: bool = False) -> CameraIntrinsics:
     the wrong number of coefficients for it.
     """
     if rectified:
-        # ROS 1's CameraInfo (a ROS 1 bag through rosbags) spells P in capitals
-        P = np.asarray(msg.p if hasattr(msg, "p") else msg.P, float).reshape(3, 4)
+        P = np.asarray(_info_field(msg, "p"), float).reshape(3, 4)
         K = P[:, :3].copy()
         if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError("camera info with an invalid P for rectified images (non-finite "
                              "or non-positive focal length)")
         return CameraIntrinsics(K, None, int(msg.width), int(msg.height))
-    # ROS 1's CameraInfo spells K and D in capitals
-    K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, float).reshape(3, 3)
+    K = np.asarray(_info_field(msg, "k"), float).reshape(3, 3)
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError("camera info with an invalid K (non-finite or non-positive focal "
                          "length)")
     lens = LensModel.create(str(msg.distortion_model),
-                            np.asarray(msg.d if hasattr(msg, "d") else msg.D, float))
+                            np.asarray(_info_field(msg, "d"), float))
     return CameraIntrinsics(K, lens, int(msg.width), int(msg.height))
 
 
