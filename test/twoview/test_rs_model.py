@@ -102,6 +102,39 @@ def test_compiled_kernel_equals_the_numpy_model(rng):
         assert np.allclose(J_b, J[b], rtol=0, atol=TOL["kernel_vs_numpy"] * np.abs(J).max())
 
 
+def test_the_gs_models_fast_path_gives_the_general_kernels_bits(rng):
+    """Zero velocities with steps in rotation and translation only (the null model's refits)
+    take a shorter path through the kernel: the same cost and normal equations, to the bit, as
+    the general 17-DOF evaluation; velocities that are not zero keep the general path."""
+    from rsvo_ros.twoview import kernels as rs_kernels
+    from rsvo_ros.twoview.solver import levenberg_marquardt
+
+    corr, state = _random_problem(rng, batch=2)
+    state.vel[:] = 0.0
+    args = (corr.x_prev, corr.x_curr, corr.s_prev, corr.s_curr, (corr.focal, corr.ds_dy),
+            np.arange(len(corr)), 2.0, np.zeros(12), np.zeros(12))
+    for b in range(2):
+        out = {}
+        for gs in (False, True):
+            H, g = np.full((17, 17), np.nan), np.full(17, np.nan)
+            cost = rs_kernels._normal_equations(state.R[b], state.t[b], state.vel[b], *args,
+                                                H, g, gs)
+            out[gs] = cost, H, g
+        assert out[True][0] == out[False][0]
+        assert np.array_equal(out[True][1][:5, :5], out[False][1][:5, :5])
+        assert np.array_equal(out[True][2][:5], out[False][2][:5])
+        assert not out[True][1][5:].any() and not out[True][2][5:].any()
+    basis = np.eye(17)[:, :5]
+    assert rs_kernels._is_gs(basis, state.vel[0])
+    assert not rs_kernels._is_gs(basis, state.vel[0] + 1e-9)
+    assert not rs_kernels._is_gs(np.eye(17)[:, :6], state.vel[0])
+    # the whole LM on that path keeps the velocities at zero and moves the pose
+    fast, cost_fast, _ = levenberg_marquardt(state, corr, 10, robust_scale=2.0, basis=basis)
+    assert np.isfinite(cost_fast).all() and not fast.vel.any()
+    moved = np.abs(fast.R - state.R).max() + np.abs(fast.t - state.t).max()
+    assert moved > 1e-6
+
+
 def test_compiled_lm_reaches_the_ground_truth_from_a_perturbed_start(paper_scene, rng):
     """LM (compiled) on exact level-6 data, started 1 deg / 3 deg off with zero velocities,
     finds the zero-residual ground truth."""
