@@ -176,13 +176,11 @@ def _point(R, t, Bt, V, xp, xc, sp, sc, cam, J):
     return e
 
 
-@nb.njit(**JIT)
-def _point_gs(R, t, Bt, xp, xc, cam, J):
-    """:func:`_point` of a state without velocities (the GS model at the reference row), its
-    Jacobian in the rotation and translation only (``J[:5]``): the same operations on the terms
-    that are not zero there (``Exp(0) = I``, no row motion), so the same bits as ``_point`` on
-    zero velocities, in about a third of the time (the model selection's null refits)."""
-    focal, kappa = cam
+@nb.njit(**JIT, inline="always")
+def _epipolar_gs(R, t, xp, xc, focal):
+    """:func:`_epipolar` of a state without velocities (the GS model at the reference row):
+    the same operations on the terms that are not zero there (``Exp(0) = I``, no row motion),
+    so the same bits."""
     a = _mv(R, xp)
     g = _cross(t, a)
     h = _cross(xc, t)
@@ -192,7 +190,16 @@ def _point_gs(R, t, Bt, xp, xc, cam, J):
     z = (Rth[0], Rth[1], 0.0)
     d2 = u[0] * u[0] + u[1] * u[1] + z[0] * z[0] + z[1] * z[1]
     inv_d = 1.0 / np.sqrt(max(d2, 1e-300))
-    e = focal * n * inv_d
+    return focal * n * inv_d, a, h, n, Rth, u, z, inv_d
+
+
+@nb.njit(**JIT)
+def _point_gs(R, t, Bt, xp, xc, cam, J):
+    """:func:`_point` of a state without velocities, its Jacobian in the rotation and
+    translation only (``J[:5]``): the same bits as ``_point`` on zero velocities, in about a
+    third of the time (the model selection's null refits)."""
+    focal, kappa = cam
+    e, a, h, n, Rth, u, z, inv_d = _epipolar_gs(R, t, xp, xc, focal)
     Z = _mv(R, z)
     k = focal * n * inv_d**3
     f = focal * inv_d
@@ -471,10 +478,14 @@ def _residuals_one(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, out):
     Rr = _rows(R)
     tt = (t[0], t[1], t[2])
     V = _velocities(vel)
+    gs = not vel.any()  # the GS model: the same bits by its shorter path
     for i in range(x_prev.shape[0]):
         xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
         xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-        out[i] = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
+        if gs:
+            out[i] = _epipolar_gs(Rr, tt, xp, xc, cam[0])[0]
+        else:
+            out[i] = _residual(Rr, tt, V, xp, xc, s_prev[i], s_curr[i], cam)
 
 
 @nb.njit(**JIT, parallel=True)
@@ -508,10 +519,14 @@ def depths_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr):
         Rr = _rows(R[b])
         tt = (t[b, 0], t[b, 1], t[b, 2])
         V = _velocities(vel[b])
+        gs = not vel[b].any()  # no row motion: the same bits without the rows' rotations
         for i in range(N):
             xp = (x_prev[i, 0], x_prev[i, 1], x_prev[i, 2])
             xc = (x_curr[i, 0], x_curr[i, 1], x_curr[i, 2])
-            _, _, _, _, _, a, bb, _, T = _rays(Rr, tt, V, xp, xc, s_prev[i], s_curr[i])
+            if gs:
+                a, bb, T = _mv(Rr, xp), xc, tt
+            else:
+                _, _, _, _, _, a, bb, _, T = _rays(Rr, tt, V, xp, xc, s_prev[i], s_curr[i])
             aa, b2, ab = _dot(a, a), _dot(bb, bb), _dot(a, bb)
             aT, bT = _dot(a, T), _dot(bb, T)
             det = aa * b2 - ab * ab

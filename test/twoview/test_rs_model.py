@@ -128,6 +128,18 @@ def test_the_gs_models_fast_path_gives_the_general_kernels_bits(rng):
     assert rs_kernels._is_gs(basis, state.vel[0])
     assert not rs_kernels._is_gs(basis, state.vel[0] + 1e-9)
     assert not rs_kernels._is_gs(np.eye(17)[:, :6], state.vel[0])
+    # residuals and depths of the GS model take the short path too: the general one's bits
+    Rr = tuple(tuple(r) for r in state.R[0])
+    tt, V = tuple(state.t[0]), ((0.0,) * 3,) * 4
+    e_fast = rs_kernels.residuals_serial(state.R[:1], state.t[:1], state.vel[:1], *args[:5])
+    lam_fast = rs_kernels.depths_batch(state.R[:1], state.t[:1], state.vel[:1], *args[:4])
+    for i in range(len(corr)):
+        xp, xc = tuple(corr.x_prev[i]), tuple(corr.x_curr[i])
+        si, ci = corr.s_prev[i], corr.s_curr[i]
+        assert e_fast[0, i] == rs_kernels._residual(Rr, tt, V, xp, xc, si, ci, args[4])
+        _, _, _, _, _, a, bb, _, T = rs_kernels._rays(Rr, tt, V, xp, xc, si, ci)
+        assert (a, bb, T) == (rs_kernels._mv(Rr, xp), xc, tt)  # what depths_batch uses
+    assert np.isfinite(lam_fast[0]).all()
     # the whole LM on that path keeps the velocities at zero and moves the pose
     fast, cost_fast, _ = levenberg_marquardt(state, corr, 10, robust_scale=2.0, basis=basis)
     assert np.isfinite(cost_fast).all() and not fast.vel.any()
