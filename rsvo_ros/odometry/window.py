@@ -162,7 +162,9 @@ class WindowResult:
     reason: str
     state: FrameState | None
     inliers: int = 0
-    tracked: int = 0  # map points seen
+    # what ``inliers`` is out of: the map points seen (tracking, re-finding), or the tracks a
+    # pair estimate shared with its keyframe (the map's initialisation, a pair recovery)
+    tracked: int = 0
     keyframe: bool = False
     hessian: np.ndarray | None = None  # (15, 15) of tracking, px^-2 units
     sigma2: float = 1.0  # residual variance of tracking (px^2)
@@ -477,7 +479,7 @@ class WindowOdometry:
         paired = obs.ids[ib]
         mapped = np.isin(paired, np.fromiter(self.map.landmarks, int, len(self.map.landmarks)))
         return WindowResult("posed", "initialised the map", self._last.copy(),
-                            inliers=res.num_inliers, tracked=len(self.map.landmarks),
+                            inliers=res.num_inliers, tracked=len(ia),
                             keyframe=True, ba=report, ba_moved=moved,
                             inlier_ids=paired[mapped], outlier_ids=paired[~mapped])  # fmt: skip
 
@@ -613,9 +615,13 @@ class WindowOdometry:
                     self._lost = 0
                     self._tracked_at_kf = len(self.map.landmarks)
                     self._make_provisional(stamp_ns)
+                    paired = obs.ids[ib]
                     return WindowResult("posed", "recovered with the pair estimator", state,
-                                        inliers=res.num_inliers, keyframe=True, ba=report,
-                                        ba_moved=[(before, state.copy())])  # fmt: skip
+                                        inliers=res.num_inliers, tracked=len(ib),
+                                        keyframe=True, ba=report,
+                                        ba_moved=[(before, state.copy())],
+                                        inlier_ids=paired[res.inliers],
+                                        outlier_ids=paired[~res.inliers])  # fmt: skip
         self._lost += 1
         held = self._last.copy()
         if self._lost >= self.options.lost_frames_to_reset or dead:

@@ -146,6 +146,11 @@ def _walk(refind: bool, frames: int = 300, seed: int = 100,
         res = pipeline.process(stamp, frame.image)
         gt[stamp], est[stamp] = frame.pose(), res.T_world_cam
         assert res.refound == res.reason.startswith(REFOUND_REASON), res.reason
+        # every posed frame's inlier ratio is a share of what its estimate used, and says
+        # which tracks (the pair recoveries' had neither: 266-376 "inlier ratio" and all red)
+        if res.status == "posed":
+            assert 0.0 <= res.inlier_ratio <= 1.0, (res.reason, res.inlier_ratio)
+            assert res.inliers is not None and res.inliers.any(), res.reason
         refound.append(res.refound)
     pipeline.close()
     acc = accuracy(gt, est)

@@ -229,6 +229,7 @@ def test_pipeline_poses_every_frame_of_a_clean_sequence(backend):
     # every posed frame says which of its drawn tracks the estimate used (the debug image):
     # the pairwise start, the map's initialisation and the frames tracked against the map
     for _, r in out[1:]:
+        assert 0.5 < r.inlier_ratio <= 1.0, (r.reason, r.inlier_ratio)
         assert r.inliers is not None and len(r.inliers) == len(r.pts_curr), r.reason
         assert r.inliers.sum() > 0.5 * len(r.inliers), r.reason
         if r.outliers is not None:
