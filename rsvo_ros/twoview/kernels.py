@@ -198,7 +198,7 @@ def _point_gs(R, t, Bt, xp, xc, cam, J):
     """:func:`_point` of a state without velocities, its Jacobian in the rotation and
     translation only (``J[:5]``): the same bits as ``_point`` on zero velocities, in about a
     third of the time (the model selection's null refits)."""
-    focal, kappa = cam
+    focal = cam[0]  # the rows' term (cam[1]) multiplies the row motion: zero here
     e, a, h, n, Rth, u, z, inv_d = _epipolar_gs(R, t, xp, xc, focal)
     Z = _mv(R, z)
     k = focal * n * inv_d**3
