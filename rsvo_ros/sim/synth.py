@@ -69,6 +69,11 @@ def intrinsics(width: int, height: int) -> np.ndarray:
 # --------------------------------------------------------------------------- textures
 
 
+def to_uint8(img: np.ndarray) -> np.ndarray:
+    """Float grey levels rounded and clipped to uint8."""
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
 def make_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
     """A tiling, corner-rich grayscale texture (float32, 0..255): multi-scale noise plus
     random rectangles, discs and lines, so that a tracker finds features everywhere."""
@@ -127,6 +132,11 @@ class CorridorScene:
         """uint8 (height, width) image; row ``r`` seen from ``(R_rows[r], p_rows[r])``
         (``T_world_camera`` of that row). ``rays``: each pixel's normalized ``(x, y)`` (a lens:
         :func:`pixel_rays`); None: the pinhole ``K``."""
+        return to_uint8(self.radiance(R_rows, p_rows, K, width, height, rays))
+
+    def radiance(self, R_rows: np.ndarray, p_rows: np.ndarray, K: np.ndarray, width: int,
+                 height: int, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """:meth:`render` before quantisation: float32 grey levels (0..255)."""
         f32 = np.float32
         # world ray of pixel (r, c): R_r (x, y, 1) = x R_r[:, 0] + y R_r[:, 1] + R_r[:, 2]
         if rays is None:  # pinhole: x depends on the column only, y on the row only
@@ -182,7 +192,7 @@ class CorridorScene:
                 continue
             sample = cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
             img[mask] = sample[mask]
-        return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        return img
 
     def surface_points(self, which: int, s: np.ndarray, t: np.ndarray) -> np.ndarray:
         """World points (N, 3) at texture coordinates (metres) of surface ``which``
@@ -385,6 +395,12 @@ class SynthConfig:
     line_delay: float | None = None
     seed: int = 0
     lens: str = "none"  # "none" or a key of LENSES: the images are rendered through that lens
+    # what real sensors add: each row integrates light for ``exposure`` s centred on its
+    # readout time (motion blur; the ground truth stays the row's mid-exposure pose), rendered
+    # as the mean of ``exposure_samples`` instants; then Gaussian noise of ``noise`` grey levels
+    exposure: float = 0.0
+    exposure_samples: int = 8
+    noise: float = 0.0
 
     def __post_init__(self):
         if self.lens != "none" and self.lens not in LENSES:
@@ -401,6 +417,13 @@ class SynthConfig:
             raise ValueError(f"line delay must be in [0, 1) s/row, got {self.line_delay}")
         if not np.isfinite(self.severity) or self.severity < 0:
             raise ValueError(f"severity must be >= 0, got {self.severity}")
+        if not (np.isfinite(self.exposure) and 0.0 <= self.exposure < 1.0 / self.rate_hz):
+            raise ValueError(f"exposure must be in [0, {1.0 / self.rate_hz:g}) s (under one frame "
+                             f"interval at {self.rate_hz:g} Hz), got {self.exposure}")
+        if self.exposure_samples < 2:
+            raise ValueError(f"exposure_samples must be >= 2, got {self.exposure_samples}")
+        if not np.isfinite(self.noise) or self.noise < 0:
+            raise ValueError(f"noise must be >= 0 grey levels, got {self.noise}")
 
     @property
     def tau(self) -> float:
@@ -486,16 +509,16 @@ class SequenceRenderer:
             R0, p0 = self._loop.R_world_cam[k], self._loop.p_world_cam[k]
             w, v = self._rs[k]
 
-            def row_pose(rows, R0=R0, p0=p0, w=w, v=v):
-                s = np.asarray(rows, float) * tau
+            def row_pose(rows, dt=0.0, R0=R0, p0=p0, w=w, v=v):
+                s = np.asarray(rows, float) * tau + dt
                 return R0 @ so3_exp(s[:, None] * w), p0 + (s[:, None] * v) @ R0.T
 
             return stamp, R0, p0, w, v, row_pose
         R0, p0 = self._traj.pose(np.array([stamp]))
         w, v = self._traj.velocity(stamp)
 
-        def row_pose(rows, stamp=stamp):
-            return self._traj.pose(stamp + np.asarray(rows, float) * tau)
+        def row_pose(rows, dt=0.0, stamp=stamp):
+            return self._traj.pose(stamp + np.asarray(rows, float) * tau + dt)
 
         return stamp, R0[0], p0[0], w, v, row_pose
 
@@ -515,9 +538,21 @@ class SequenceRenderer:
     def render(self, k: int) -> Frame:
         cfg = self.config
         stamp, R0, p0, w, v, row_pose = self.frame_pose(k)
-        R_rows, p_rows = row_pose(np.arange(cfg.height))
-        img = self.scene.render(R_rows, p_rows, self.K, cfg.width, cfg.height, self._rays)
-        return Frame(k, stamp, img, R0, p0, w, v, row_pose)
+        rows = np.arange(cfg.height)
+        if cfg.exposure > 0:  # motion blur: the mean over instants spread over the exposure
+            n = cfg.exposure_samples
+            img = np.zeros((cfg.height, cfg.width), np.float32)
+            for dt in cfg.exposure * ((np.arange(n) + 0.5) / n - 0.5):
+                img += self.scene.radiance(*row_pose(rows, dt), self.K, cfg.width, cfg.height,
+                                           self._rays)  # fmt: skip
+            img /= n
+        else:
+            img = self.scene.radiance(*row_pose(rows), self.K, cfg.width, cfg.height,
+                                      self._rays)  # fmt: skip
+        if cfg.noise > 0:  # per frame, from the seed: the same bag every time
+            rng = np.random.default_rng([cfg.seed, 13, k])
+            img = img + rng.normal(0.0, cfg.noise, img.shape).astype(np.float32)
+        return Frame(k, stamp, to_uint8(img), R0, p0, w, v, row_pose)
 
     def __iter__(self) -> Iterator[Frame]:
         for k in range(self.config.frames):

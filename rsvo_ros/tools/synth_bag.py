@@ -51,6 +51,8 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
         writer.set_custom_data("rsvo.severity", format(float(config.severity), ".12g"))
         writer.set_custom_data("rsvo.seed", str(config.seed))
         writer.set_custom_data("rsvo.lens", config.lens)
+        writer.set_custom_data("rsvo.exposure", format(float(config.exposure), ".12g"))
+        writer.set_custom_data("rsvo.noise", format(float(config.noise), ".12g"))
         if compressed is None:
             c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
         else:
@@ -119,6 +121,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the images as sensor_msgs/CompressedImage on "
                         f"{bagio.IMAGE_TOPIC}/compressed (image_transport's compressed; JPEG "
                         f"quality {bagio.JPEG_QUALITY}) instead of raw sensor_msgs/Image")
+    p.add_argument("--exposure", type=float, default=0.0, metavar="S",
+                   help="exposure time of each row (s), centred on its readout time: motion "
+                        "blur, rendered as the mean of 8 instants (default 0: sharp). Indoor "
+                        "hand-held video is often exposed for 5-20 ms")
+    p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
+                   help="Gaussian sensor noise, grey levels (0-255) std, drawn per frame from "
+                        "the seed (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -129,7 +138,8 @@ def main(argv: list[str] | None = None) -> int:
         config = SynthConfig(frames=args.frames, motion=args.motion, level=args.level,
                              severity=args.severity, width=args.resolution[0],
                              height=args.resolution[1], line_delay=args.line_delay,
-                             seed=args.seed, lens=args.lens)  # fmt: skip
+                             seed=args.seed, lens=args.lens, exposure=args.exposure,
+                             noise=args.noise)  # fmt: skip
         summary = write_bag(args.out_bag, config, args.storage, args.overwrite,
                             progress=not args.no_progress, compressed=args.compressed)
     except (ValueError, FileExistsError) as exc:

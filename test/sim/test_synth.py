@@ -78,10 +78,12 @@ def _hidden_by_inner_wall(scene, row_pose, rows, X):
 
 @pytest.mark.parametrize("motion, extra", [("paper", {"level": 6}),
                                            ("handheld", {"severity": 3.0}),
-                                           ("vehicle", {"severity": 3.0})])
+                                           ("vehicle", {"severity": 3.0}),
+                                           ("handheld", {"severity": 3.0, "exposure": 0.008})])
 def test_rendered_points_land_on_their_exact_rs_projection(motion, extra):
     """Dots on the outer wall, fully visible, land on the fixed-point RS projection of their
-    centres (the paper motion at level 6 moves rows by tens of pixels)."""
+    centres (the paper motion at level 6 moves rows by tens of pixels); with motion blur the
+    smeared dots' centroids still do: the exposure is centred on each row's time."""
     rng = np.random.default_rng(4)
     tex, centres = _dot_texture(rng)
     gray = np.full_like(tex, 90.0)
@@ -134,6 +136,45 @@ def test_frames_are_textured_everywhere():
     hist, _, _ = np.histogram2d(corners[:, 0, 0], corners[:, 0, 1], bins=(4, 3),
                                 range=[[0, 320], [0, 180]])
     assert hist.min() > 0  # features in every cell of a 4x3 grid
+
+
+def test_exposure_blurs_along_the_motion_and_noise_has_its_std():
+    """--exposure: a shaken frame loses sharpness (and a longer exposure more), while the
+    frame's ground truth is unchanged; --noise: the difference to the noiseless frame has the
+    asked std and no bias, is drawn from the seed (the same bag every time) and differs from
+    frame to frame."""
+    base = dict(frames=2, motion="handheld", severity=3.0, width=320, height=180, seed=3)
+    sharp, short, long = (render_sequence(SynthConfig(**base, exposure=e))[1]
+                          for e in (0.0, 0.004, 0.016))
+
+    def sharpness(img):
+        return float(cv2.Laplacian(img.astype(np.float64), cv2.CV_64F).var())
+
+    assert sharpness(long.image) < sharpness(short.image) < 0.97 * sharpness(sharp.image)
+    assert abs(float(long.image.mean()) - float(sharp.image.mean())) < 1.0
+    assert np.array_equal(long.R_world_cam, sharp.R_world_cam)
+    assert np.array_equal(long.w, sharp.w)
+
+    clean = render_sequence(SynthConfig(**base))
+    noisy = render_sequence(SynthConfig(**base, noise=4.0))
+    again = render_sequence(SynthConfig(**base, noise=4.0))
+    d = [n.image.astype(float) - c.image.astype(float) for n, c in zip(noisy, clean)]
+    inside = [(c.image > 20) & (c.image < 235) for c in clean]  # away from clipping
+    for dk, mk in zip(d, inside, strict=True):
+        assert abs(dk[mk].std() - 4.0) < 0.2 and abs(dk[mk].mean()) < 0.1
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(noisy, again))
+    assert not np.array_equal(d[0], d[1])
+
+
+@pytest.mark.parametrize("bad, match", [({"exposure": 0.04}, "exposure"),
+                                        ({"exposure": -0.001}, "exposure"),
+                                        ({"noise": -1.0}, "noise"),
+                                        ({"noise": float("nan")}, "noise"),
+                                        ({"exposure": 0.01, "exposure_samples": 1},
+                                         "exposure_samples")])
+def test_sensor_settings_are_validated(bad, match):
+    with pytest.raises(ValueError, match=match):
+        SynthConfig(**bad)
 
 
 def test_handheld_ground_truth_velocity_matches_the_trajectory():
@@ -214,6 +255,13 @@ def test_cli_refuses_to_overwrite_and_validates(tmp_path, capsys):
                        "--no-progress", "--storage", "mcap"]) == 0
     assert synth_main([str(tmp_path / "c"), "--frames", "0", "--no-progress"]) == 2
     assert "frames" in capsys.readouterr().err
+    assert synth_main([str(tmp_path / "c"), "--exposure", "0.05", "--no-progress"]) == 2
+    assert "exposure must be in [0, 0.0333333) s" in capsys.readouterr().err
+    blurred = tmp_path / "blurred"
+    assert synth_main([str(blurred), "--frames", "2", "--resolution", "64x36", "--exposure",
+                       "0.01", "--noise", "2", "--no-progress"]) == 0
+    meta = bagio.custom_data(blurred)
+    assert (meta["rsvo.exposure"], meta["rsvo.noise"]) == ("0.01", "2")
     with pytest.raises(SystemExit):
         synth_main([str(tmp_path / "d"), "--resolution", "big"])
 
