@@ -41,7 +41,6 @@ from rsvo_ros.odometry.pipeline import (
 )
 from rsvo_ros.odometry.tracker import (
     MAX_REFINE_WINDOW_PX,
-    TrackerOptions,
     refine_window_or_auto,
 )
 from rsvo_ros.odometry.window import WindowOptions
@@ -263,8 +262,9 @@ def replay(cfg: ReplayConfig) -> dict:
         n_images = min(n_images, cfg.max_frames)
     options = cfg.options
     options.model = cfg.model
-    options.tracker = TrackerOptions(max_features=cfg.max_features,
-                                     refine_window_px=cfg.refine_window_px)
+    # the command line's tracker settings over the given options' (their other fields kept)
+    options.tracker = dataclasses.replace(options.tracker, max_features=cfg.max_features,
+                                          refine_window_px=cfg.refine_window_px)
 
     skipped: Counter = Counter()
     statuses: Counter = Counter()

@@ -725,3 +725,27 @@ def test_window_option_flag_sets_a_field_records_it_and_is_checked(vehicle_bag, 
             replay_main([str(vehicle_bag), "--output", str(tmp_path / "bad"),
                          "--window-option", bad])
         assert message in capsys.readouterr().err
+
+
+def test_replay_keeps_the_callers_tracker_options(vehicle_bag, tmp_path, monkeypatch):
+    """``replay()`` with PipelineOptions: the command line's tracker settings (max features,
+    refinement window) go over the given tracker options, whose other fields are kept (they
+    were all replaced by defaults)."""
+    from rsvo_ros.odometry.pipeline import PipelineOptions
+    from rsvo_ros.odometry.tracker import TrackerOptions
+    from rsvo_ros.tools import replay as replay_mod
+
+    seen = []
+    original = replay_mod.OdometryPipeline
+
+    def spy(K, lens, line_delay, options):
+        seen.append(options.tracker)
+        return original(K, lens, line_delay, options)
+
+    monkeypatch.setattr(replay_mod, "OdometryPipeline", spy)
+    options = PipelineOptions(tracker=TrackerOptions(grid=(4, 3), fb_threshold_px=0.5))
+    replay_mod.replay(replay_mod.ReplayConfig(vehicle_bag, tmp_path / "opts", max_frames=3,
+                                              max_features=300, overwrite=True,
+                                              progress=False, options=options))  # fmt: skip
+    assert seen and seen[0].grid == (4, 3) and seen[0].fb_threshold_px == 0.5
+    assert seen[0].max_features == 300
