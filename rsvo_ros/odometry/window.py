@@ -85,6 +85,11 @@ class WindowOptions:
     min_inlier_ratio: float = 0.5
     track_robust_px: float = 1.5  # Cauchy scale of tracking
     track_inlier_px: float = 3.0
+    # > 0: the inlier threshold is at least this many times the image noise the last tracked
+    # frames showed (their median reprojection error as a Gaussian's sigma): for blurred
+    # video, whose tracks are noisier than track_inlier_px. Off by default: on blurred
+    # synthetic walks mixed (README, "Motion blur and sensor noise"), on sharp ones no change
+    track_inlier_sigmas: float = 0.0
     track_iterations: int = 10
     # tracking's velocity prior, centred on the motion over the last interval
     prior_w_rad_s: float = 0.3
@@ -225,6 +230,8 @@ class WindowOdometry:
         # scale through the speed, and the last frames before a loss may be off
         self._speeds: deque = deque(maxlen=30)
         self._inliers: deque = deque(maxlen=30)  # inliers of the last tracked frames
+        self._err_medians: deque = deque(maxlen=15)  # their median reprojection errors (px)
+        self._err_median = np.nan  # the last motion-only refinement's
         self._weak = False  # the last frame's tracking was weak (async: map synchronously)
         self._hints: dict[int, np.ndarray] = {}  # stamp -> the chain's row-0 pose
         if getattr(self, "_mapper", None) is not None:
@@ -520,6 +527,8 @@ class WindowOdometry:
         if last_kf.after is None and last_kf.state.stamp_ns < stamp_ns:
             last_kf.after = state.copy()  # read by the next window BA
         inliers = int(inl.sum())
+        if np.isfinite(self._err_median):
+            self._err_medians.append(self._err_median)
         self._weak = bool(self._inliers) and \
             inliers < o.sync_below_inlier_share * float(np.median(self._inliers))
         self._inliers.append(inliers)
@@ -565,7 +574,16 @@ class WindowOdometry:
             prior_mean, p2, acc_prior_p2(self.map.options.prior_acc_rad_s2),
             o.track_iterations)  # fmt: skip
         err = np.linalg.norm(res, axis=1)
-        inl = err < o.track_inlier_px * self._px
+        threshold = o.track_inlier_px * self._px
+        self._err_median = float(np.median(err)) if len(err) else np.nan
+        if o.track_inlier_sigmas > 0 and np.isfinite(self._err_median):
+            # the image noise the last tracked frames showed (not this frame's, but for the
+            # first: a diverged pose must not widen its own threshold); the median of a 2-D
+            # Gaussian error's length is sqrt(2 ln 2) sigma
+            seen = np.median(self._err_medians) if self._err_medians else self._err_median
+            sigma = float(seen) / np.sqrt(2.0 * np.log(2.0))
+            threshold = max(threshold, o.track_inlier_sigmas * sigma)
+        inl = err < threshold
         finite = np.isfinite(R).all() and np.isfinite(p).all()
         sigma2 = max(float(np.mean(err[inl] ** 2)) / 2.0, 1e-6) if inl.any() else np.inf
         return (FrameState(stamp_ns, R, p, w, v, a) if finite else None), inl, H, sigma2
