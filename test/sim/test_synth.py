@@ -158,11 +158,11 @@ def test_exposure_blurs_along_the_motion_and_noise_has_its_std():
     clean = render_sequence(SynthConfig(**base))
     noisy = render_sequence(SynthConfig(**base, noise=4.0))
     again = render_sequence(SynthConfig(**base, noise=4.0))
-    d = [n.image.astype(float) - c.image.astype(float) for n, c in zip(noisy, clean)]
+    d = [n.image.astype(float) - c.image.astype(float) for n, c in zip(noisy, clean, strict=True)]
     inside = [(c.image > 20) & (c.image < 235) for c in clean]  # away from clipping
     for dk, mk in zip(d, inside, strict=True):
         assert abs(dk[mk].std() - 4.0) < 0.2 and abs(dk[mk].mean()) < 0.1
-    assert all(np.array_equal(a.image, b.image) for a, b in zip(noisy, again))
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(noisy, again, strict=True))
     assert not np.array_equal(d[0], d[1])
 
 
