@@ -140,18 +140,15 @@ def camera_from_info(msg, rectified: bool = False) -> CameraIntrinsics:
     the wrong number of coefficients for it.
     """
     if rectified:
-        P = np.asarray(_info_field(msg, "p"), float).reshape(3, 4)
-        K = P[:, :3].copy()
-        if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ValueError("camera info with an invalid P for rectified images (non-finite "
-                             "or non-positive focal length)")
-        return CameraIntrinsics(K, None, int(msg.width), int(msg.height))
-    K = np.asarray(_info_field(msg, "k"), float).reshape(3, 3)
+        K, matrix = np.asarray(_info_field(msg, "p"), float).reshape(3, 4)[:, :3].copy(), \
+            "P for rectified images"
+    else:
+        K, matrix = np.asarray(_info_field(msg, "k"), float).reshape(3, 3), "K"
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError("camera info with an invalid K (non-finite or non-positive focal "
-                         "length)")
-    lens = LensModel.create(str(msg.distortion_model),
-                            np.asarray(_info_field(msg, "d"), float))
+        raise ValueError(f"camera info with an invalid {matrix} (non-finite or non-positive "
+                         "focal length)")
+    lens = None if rectified else LensModel.create(str(msg.distortion_model),
+                                                   np.asarray(_info_field(msg, "d"), float))
     return CameraIntrinsics(K, lens, int(msg.width), int(msg.height))
 
 

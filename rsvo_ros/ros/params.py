@@ -201,23 +201,19 @@ def params_yaml(estimate: dict, source: str, mode: str = "fixed",
             f"    line_delay_mode: {mode}\n")
 
 
+# the string parameters that take one of a few values
+CHOICES = {"model": MODELS, "backend": BACKENDS, "image_qos_reliability": QOS_CHOICES,
+           "image_transport": IMAGE_TRANSPORTS, "line_delay_mode": LINE_DELAY_MODES,
+           "lost_odometry": LOST_CHOICES}
+
+
 def read_config(values: dict) -> NodeConfig:
     """Check the declared values (ranges are enforced by rclpy already); ``ValueError`` names
     the parameter that is wrong."""
     p = values
-    if p["model"] not in MODELS:
-        raise ValueError(f"parameter model must be one of {MODELS}, got {p['model']!r}")
-    if p["backend"] not in BACKENDS:
-        raise ValueError(f"parameter backend must be one of {BACKENDS}, got {p['backend']!r}")
-    if p["image_qos_reliability"] not in QOS_CHOICES:
-        raise ValueError(f"parameter image_qos_reliability must be one of {QOS_CHOICES}, "
-                         f"got {p['image_qos_reliability']!r}")  # fmt: skip
-    if p["image_transport"] not in IMAGE_TRANSPORTS:
-        raise ValueError(f"parameter image_transport must be one of {IMAGE_TRANSPORTS}, "
-                         f"got {p['image_transport']!r}")  # fmt: skip
-    if p["line_delay_mode"] not in LINE_DELAY_MODES:
-        raise ValueError(f"parameter line_delay_mode must be one of {LINE_DELAY_MODES}, "
-                         f"got {p['line_delay_mode']!r}")  # fmt: skip
+    for name, choices in CHOICES.items():
+        if p[name] not in choices:
+            raise ValueError(f"parameter {name} must be one of {choices}, got {p[name]!r}")
     if p["line_delay_mode"] == "auto" and (p["model"] != "rs" or p["backend"] != "window"):
         raise ValueError("parameter line_delay_mode auto needs model rs and backend window")
     if p["line_delay_save_file"]:
@@ -228,9 +224,6 @@ def read_config(values: dict) -> NodeConfig:
             raise ValueError(f"parameter line_delay_save_file: folder {folder} does not exist")
     refine_window_or_auto(p["klt_refine_window_px"], "parameter klt_refine_window_px")
     uncertain_rotation_or_auto(p["uncertain_rotation_deg"], "parameter uncertain_rotation_deg")
-    if p["lost_odometry"] not in LOST_CHOICES:
-        raise ValueError(f"parameter lost_odometry must be one of {LOST_CHOICES}, "
-                         f"got {p['lost_odometry']!r}")  # fmt: skip
     tf = np.asarray(p["base_to_camera"], float)
     if tf.shape != (7,) or not np.isfinite(tf).all() or abs(np.linalg.norm(tf[3:]) - 1) > 1e-3:
         raise ValueError("parameter base_to_camera must be [x, y, z, qx, qy, qz, qw] with a "

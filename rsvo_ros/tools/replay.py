@@ -629,7 +629,7 @@ class DebugVideo:
             self._writer.release()
 
 
-GROUND_TRUTH_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
+GROUND_TRUTH_TYPES = (bagio.ODOMETRY_TYPE, "geometry_msgs/msg/PoseStamped",
                       "geometry_msgs/msg/PoseWithCovarianceStamped",
                       "geometry_msgs/msg/TransformStamped")
 GT_MAX_GAP_S = 0.2  # a resampled ground truth interpolates across gaps up to this
@@ -645,7 +645,7 @@ def ground_truth_of(msg, msgtype: str) -> tuple[np.ndarray, np.ndarray | None]:
         return T, None
     pose = msg.pose if msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
     T[:3, :3], T[:3, 3] = bagio.pose_of(pose)
-    if msgtype != "nav_msgs/msg/Odometry":
+    if msgtype != bagio.ODOMETRY_TYPE:
         return T, None
     tw = msg.twist.twist
     return T, np.array([tw.angular.x, tw.angular.y, tw.angular.z])
