@@ -126,6 +126,10 @@ class FrameResult:
     time_reset: bool = False  # time jumped back: this frame starts a new trajectory
     mapping_ms: float = 0.0  # window: the part of time_ms spent in the window BA (keyframes)
     refound: bool = False  # window: this frame re-found a lost map by its landmarks' descriptors
+    # (gain, offset): the tracker found the brightness changed (auto exposure), ``image ~ gain x
+    # previous image + offset``, and tracked in the previous image's grey levels; None: it did
+    # not change (or the frame was not tracked)
+    brightness_change: tuple[float, float] | None = None
 
     @property
     def has_pose(self) -> bool:
@@ -220,11 +224,13 @@ class OdometryPipeline:
         t0 = time.perf_counter()
         idx = self._index
         self._index += 1
+        tracked = False
 
         def result(status, reason="", **kw):
             res = FrameResult(idx, stamp_ns, status, reason,
                               None if status == "skipped" else self.T_world_cam.copy(),
                               self.covariance.copy(), **kw)  # fmt: skip
+            res.brightness_change = self.tracker.last_photometric if tracked else None
             res.tracking = self._tracking_state(status, reason)
             res.time_ms = (time.perf_counter() - t0) * 1e3
             return res
@@ -247,6 +253,7 @@ class OdometryPipeline:
             self._intervals = (self._intervals + [stamp_ns - prev_stamp])[-15:]
         self._calibrate(stamp_ns, gray.shape[0])
         pair = self.tracker.track(gray, stamp_ns)
+        tracked = True
         if self.options.backend == "window":
             interval = None if prev_stamp is None else (stamp_ns - prev_stamp) * 1e-9
             return self._process_window(stamp_ns, gray, pair, interval, idx, result)

@@ -1,6 +1,7 @@
 """Feature tracking for the frame-pair pipeline: bucketed corners, pyramidal KLT with a
-forward-backward check (after a dropped frame started from each track's last image motion),
-re-detection where tracks thin out.
+forward-backward check (after a dropped frame started from each track's last image motion;
+where the brightness changed, in the previous image's grey levels), re-detection where tracks
+thin out.
 
 Pure numpy + OpenCV, no ROS.
 """
@@ -24,6 +25,18 @@ DEFAULT_MAX_FEATURES = 500  # paper, Sec. 7.1: "limited up to 500 with a bucketi
 # shrinks")
 REFINE_WINDOW_PX = 11
 MAX_REFINE_WINDOW_PX = 51
+# Photometric compensation (auto exposure / gain): the current image's grey levels are mapped
+# into the previous image's before KLT (whose squared differences assume constant brightness)
+# when the tracked points say the brightness changed by more than PHOTOMETRIC_TOLERANCE grey
+# levels somewhere between the 5th and 95th percentile of their grey levels; each image starts
+# from the last image's change (an auto exposure ramps over several frames). Where nothing is
+# mapped the tracks are plain KLT's, bit for bit (no frame of the constant-brightness bags
+# measured was mapped: README, "Auto exposure")
+PHOTOMETRIC_TOLERANCE = 3.0
+PHOTOMETRIC_ROUNDS = 2  # refit, map and track again at most this often per image
+PHOTOMETRIC_MIN_POINTS = 20  # tracked points to fit the change; fewer: the images' own levels
+PHOTOMETRIC_CLIPPED = (4, 251)  # grey levels at or beyond these are clipped (not fitted)
+PHOTOMETRIC_PATCH = 7  # px: the grey level of a tracked point is its patch's mean
 
 
 def check_refine_window(px: int | None, name: str = "refine_window_px",
@@ -69,6 +82,9 @@ class TrackerOptions:
     # the last motion, which shake reverses every few frames, was a worse start than none
     # (A/B: 300-frame walks 1.5-4.5x worse ATE)
     predict_flow: bool = True
+    # map the current image's grey levels into the previous one's (gain and offset fitted on
+    # the tracked points) and track again when the brightness changed (auto exposure)
+    photometric_compensation: bool = True
 
 
 @dataclass
@@ -95,6 +111,10 @@ class FeatureTracker:
         self._flow = np.zeros((0, 2), np.float32)  # each feature's last image motion (px)
         self._flow_dt: float | None = None  # ... over this time (s)
         self._stamp_ns: int | None = None
+        # (gain, offset) of the last image against the one before (``img ~ gain prev + offset``)
+        # where it was tracked in the previous image's grey levels; None: no change found
+        self.last_photometric: tuple[float, float] | None = None
+        self._brightness_rate: tuple[float, float] | None = None  # the last significant change
 
     def reset(self) -> None:
         self._prev_img = None
@@ -102,6 +122,7 @@ class FeatureTracker:
         self._ids = np.zeros(0, np.int64)
         self._flow = np.zeros((0, 2), np.float32)
         self._flow_dt = self._stamp_ns = None
+        self._brightness_rate = None
 
     @property
     def refine_window_px(self) -> int:
@@ -127,6 +148,7 @@ class FeatureTracker:
         """
         o = self.options
         empty = TrackedPair(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64))
+        self.last_photometric = None
         dt = None
         if stamp_ns is not None and self._stamp_ns is not None:
             dt = (stamp_ns - self._stamp_ns) * 1e-9
@@ -136,35 +158,10 @@ class FeatureTracker:
             self._pts = np.zeros((0, 2), np.float32)
             self._ids = np.zeros(0, np.int64)
             self._flow, self._flow_dt = np.zeros((0, 2), np.float32), None
+            self._brightness_rate = None
         else:
-            lk = dict(winSize=(o.window_px, o.window_px), maxLevel=o.pyramid_levels,
-                      criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-            p0 = self._pts.reshape(-1, 1, 2)
-            # after a gap, both ways from the prediction: back from where the point landed,
-            # started where the predicted motion takes it back to
             guess = self._predicted_motion(dt)
-            if guess is not None:
-                lk["flags"] = cv2.OPTFLOW_USE_INITIAL_FLOW
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0,
-                                                  None if guess is None else p0 + guess, **lk)
-            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1,
-                                                   None if guess is None else p1 - guess, **lk)
-            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
-            h, w = img.shape
-            p1f = p1.reshape(-1, 2)
-            good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < o.fb_threshold_px)
-            good &= np.isfinite(p1f).all(axis=1)
-            good &= (p1f[:, 0] >= 0) & (p1f[:, 0] <= w - 1) & (p1f[:, 1] >= 0)
-            good &= p1f[:, 1] <= h - 1
-            if self._refine_px and good.any():
-                p1r, st3, _ = cv2.calcOpticalFlowPyrLK(
-                    self._prev_img, img, p0[good], p1[good],
-                    winSize=(self._refine_px,) * 2, maxLevel=0, criteria=lk["criteria"],
-                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-                p1r = p1r.reshape(-1, 2)
-                ok = (st3.ravel() == 1) & np.isfinite(p1r).all(axis=1)
-                ok &= np.linalg.norm(p1r - p1f[good], axis=1) < o.fb_threshold_px
-                p1f[np.flatnonzero(good)[ok]] = p1r[ok]
+            p1f, good = self._track_photometric(img, guess)
             pair = TrackedPair(self._pts[good].astype(float), p1f[good].astype(float),
                                self._ids[good].copy())  # fmt: skip
             self._flow = (p1f[good] - self._pts[good]).astype(np.float32)
@@ -180,6 +177,95 @@ class FeatureTracker:
                                 np.tile(fill, (len(self._pts) - n_tracked, 1))]).astype(np.float32)
         self._prev_img = img
         return pair
+
+    def _klt(self, prev: np.ndarray, img: np.ndarray,
+             guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Pyramidal KLT of the features from ``prev`` into ``img`` with the forward-backward
+        check and the full-resolution refinement: (n, 2) positions and (n,) which are good."""
+        o = self.options
+        lk = dict(winSize=(o.window_px, o.window_px), maxLevel=o.pyramid_levels,
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        p0 = self._pts.reshape(-1, 1, 2)
+        # after a gap, both ways from the prediction: back from where the point landed,
+        # started where the predicted motion takes it back to
+        if guess is not None:
+            lk["flags"] = cv2.OPTFLOW_USE_INITIAL_FLOW
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, img, p0,
+                                              None if guess is None else p0 + guess, **lk)
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(img, prev, p1,
+                                               None if guess is None else p1 - guess, **lk)
+        fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+        h, w = img.shape
+        p1f = p1.reshape(-1, 2)
+        good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < o.fb_threshold_px)
+        good &= np.isfinite(p1f).all(axis=1)
+        good &= (p1f[:, 0] >= 0) & (p1f[:, 0] <= w - 1) & (p1f[:, 1] >= 0)
+        good &= p1f[:, 1] <= h - 1
+        if self._refine_px and good.any():
+            p1r, st3, _ = cv2.calcOpticalFlowPyrLK(
+                prev, img, p0[good], p1[good],
+                winSize=(self._refine_px,) * 2, maxLevel=0, criteria=lk["criteria"],
+                flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            p1r = p1r.reshape(-1, 2)
+            ok = (st3.ravel() == 1) & np.isfinite(p1r).all(axis=1)
+            ok &= np.linalg.norm(p1r - p1f[good], axis=1) < o.fb_threshold_px
+            p1f[np.flatnonzero(good)[ok]] = p1r[ok]
+        return p1f, good
+
+    def _track_photometric(self, img: np.ndarray,
+                           guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """KLT into ``img`` (:meth:`_klt`); with ``photometric_compensation``, into ``img`` in
+        the previous image's grey levels where its brightness changed: first mapped by the last
+        image's change (an auto exposure ramps over several frames), then, while the tracked
+        points show a change beyond the tolerance, by the refitted one (tracks found under a
+        changed brightness are a little off, and so is a first fit), at most
+        ``PHOTOMETRIC_ROUNDS`` more times."""
+        if not self.options.photometric_compensation:
+            return self._klt(self._prev_img, img, guess)
+        prev_levels = _patch_levels(self._prev_img, self._pts)
+        applied = self._brightness_rate
+        mapped = _map_levels(img, applied)
+        p1, good = self._klt(self._prev_img, mapped, guess)
+        for k in range(PHOTOMETRIC_ROUNDS + 1):
+            fit = self._photometric_change(prev_levels, mapped, p1, good)
+            total = _compose(applied, None if fit is None else fit[:2])
+            self._brightness_rate = total if fit is not None and _changed(total, fit[3]) \
+                else None  # fmt: skip
+            if fit is None or not fit[2] or k == PHOTOMETRIC_ROUNDS:
+                break
+            applied = total
+            mapped = _map_levels(img, applied)
+            p1, good = self._klt(self._prev_img, mapped, guess)
+        self.last_photometric = applied
+        return p1, good
+
+    def _photometric_change(self, prev_levels: tuple[np.ndarray, np.ndarray], img: np.ndarray,
+                            p1: np.ndarray,
+                            good: np.ndarray) -> tuple[float, float, bool, np.ndarray] | None:
+        """``(gain, offset, changed, levels)``: ``img ~ gain * prev + offset``, whether that
+        changes a grey level by more than ``PHOTOMETRIC_TOLERANCE`` between ``levels``, the
+        5th and 95th percentile of the previous image's fitted grey levels; None without a
+        fit. Fitted on the mean grey levels around the tracked points (``prev_levels``:
+        :func:`_patch_levels` of the previous image at the features; not where either patch is
+        clipped) with one round of outlier rejection; with fewer than
+        ``PHOTOMETRIC_MIN_POINTS`` such tracks, on the images' own percentiles."""
+        x = y = np.zeros(0)
+        if good.sum() >= PHOTOMETRIC_MIN_POINTS:
+            y, y_clipped = _patch_levels(img, p1[good])
+            keep = ~prev_levels[1][good] & ~y_clipped
+            x, y = prev_levels[0][good][keep], y[keep]
+        if len(x) < PHOTOMETRIC_MIN_POINTS:  # the images' grey-level distributions instead
+            q = np.linspace(5.0, 95.0, 19)
+            x = np.percentile(self._prev_img[::4, ::4], q)
+            y = np.percentile(img[::4, ::4], q)
+            lo, hi = PHOTOMETRIC_CLIPPED
+            keep = (x > lo) & (x < hi) & (y > lo) & (y < hi)
+            x, y = x[keep], y[keep]
+        fit = _line_fit(x, y)
+        if fit is None:
+            return None
+        levels = np.percentile(x, [5.0, 95.0])
+        return fit[0], fit[1], _changed(fit, levels), levels
 
     def _predicted_motion(self, dt: float | None) -> np.ndarray | None:
         """(n, 1, 2) image motion of each feature expected by ``dt`` s after the last image
@@ -225,3 +311,58 @@ class FeatureTracker:
             self._ids = np.concatenate([self._ids,
                                         np.arange(self._next_id, self._next_id + len(pts))])
             self._next_id += len(pts)
+
+
+def _map_levels(img: np.ndarray, change: tuple[float, float] | None) -> np.ndarray:
+    """``img`` in the grey levels of an image it is ``change = (gain, offset)`` of
+    (``img ~ gain * other + offset``); ``img`` itself for None."""
+    if change is None:
+        return img
+    levels = (np.arange(256) - change[1]) / change[0]
+    return cv2.LUT(img, np.clip(np.round(levels), 0, 255).astype(np.uint8))
+
+
+def _compose(first: tuple[float, float] | None,
+             then: tuple[float, float] | None) -> tuple[float, float] | None:
+    """The change of ``img`` where ``img ~ first(mapped)`` and ``mapped ~ then(prev)``."""
+    if first is None or then is None:
+        return then if first is None else first
+    return first[0] * then[0], first[0] * then[1] + first[1]
+
+
+def _changed(change: tuple[float, float], levels: np.ndarray) -> bool:
+    """Whether ``change`` moves a grey level between ``levels`` by more than the tolerance."""
+    return bool(np.max(np.abs((change[0] - 1.0) * levels + change[1])) > PHOTOMETRIC_TOLERANCE)
+
+
+def _patch_levels(img: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean grey level (n,) of the ``PHOTOMETRIC_PATCH`` x ``PHOTOMETRIC_PATCH`` pixels
+    around each of ``pts`` (n, 2) (x, y; rounded, kept inside the image), and whether the
+    patch has a clipped pixel (n,)."""
+    h, w = img.shape
+    r = PHOTOMETRIC_PATCH // 2
+    d = np.arange(-r, r + 1)
+    x = np.clip(np.round(pts[:, 0]).astype(int), r, w - 1 - r)
+    y = np.clip(np.round(pts[:, 1]).astype(int), r, h - 1 - r)
+    patch = img[(y[:, None] + d)[:, :, None], (x[:, None] + d)[:, None, :]]
+    lo, hi = PHOTOMETRIC_CLIPPED
+    flat = patch.reshape(len(pts), -1)
+    return flat.mean(axis=1), (flat.min(axis=1) <= lo) | (flat.max(axis=1) >= hi)
+
+
+def _line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float] | None:
+    """``y ~ gain * x + offset`` by least squares, refitted without the points beyond 3 robust
+    sigmas; None where ``x`` has no spread or the gain is not positive."""
+    keep = np.ones(len(x), bool)
+    for _ in range(2):
+        if keep.sum() < 3 or np.ptp(x[keep]) < 1.0:
+            return None
+        xk, yk = x[keep], y[keep]
+        gain = float(np.mean((xk - xk.mean()) * (yk - yk.mean())) / np.var(xk))
+        offset = float(yk.mean() - gain * xk.mean())
+        r = y - (gain * x + offset)
+        sigma = 1.4826 * np.median(np.abs(r[keep])) + 1e-6
+        keep = np.abs(r) <= 3.0 * sigma
+    if not (np.isfinite(gain) and np.isfinite(offset)) or gain <= 0.05:
+        return None
+    return float(gain), float(offset)

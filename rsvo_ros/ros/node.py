@@ -95,7 +95,8 @@ class RsvoNode(Node):
         self._camera: tuple | None = None
         self.pipeline: OdometryPipeline | None = None
         self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
-                      "held": 0, "time_resets": 0, "map_refound": 0}  # fmt: skip
+                      "held": 0, "time_resets": 0, "map_refound": 0,
+                      "brightness_compensated": 0}  # fmt: skip
         self._bad_kinds: set[str] = set()
         self._recv_times: deque = deque(maxlen=100)
         self._proc_ms: deque = deque(maxlen=100)
@@ -233,7 +234,9 @@ class RsvoNode(Node):
                                    max_features=int(self.p["max_features"]),
                                    refine_window_px=refine_window_or_auto(
                                        int(self.p["klt_refine_window_px"]),
-                                       "parameter klt_refine_window_px")),
+                                       "parameter klt_refine_window_px"),
+                                   photometric_compensation=bool(
+                                       self.p["photometric_compensation"])),
                                motion_prior=bool(self.p["motion_prior"]))
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
@@ -311,6 +314,8 @@ class RsvoNode(Node):
             self.stats["held"] += 1
         if res.refound:
             self.stats["map_refound"] += 1
+        if res.brightness_change is not None:
+            self.stats["brightness_compensated"] += 1
         self._state = {"initialising": f"initialising: {res.reason}", "tracking": "tracking",
                        "lost": f"lost: {res.reason}"}[res.tracking]  # fmt: skip
         self._tracking = res.tracking

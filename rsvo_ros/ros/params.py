@@ -115,6 +115,11 @@ PARAMETERS = {
         "window of this many px (the window backend's vehicles otherwise shrink by about 2 %/s; "
         "README). -1: the backend's choice (11 for window, 0 for pairwise); 0: off; else "
         f"3-{MAX_REFINE_WINDOW_PX}.", -1, MAX_REFINE_WINDOW_PX)),
+    "photometric_compensation": (True, _bool(
+        "KLT: where the brightness changed from the last image (auto exposure, auto gain), fit "
+        "the change on the tracked points and track again in the last image's grey levels "
+        "(counted in diagnostics as brightness_compensated; false: track the images as they "
+        "are).")),
     "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
     "motion_prior": (True, _bool(
         "RS: centre the velocity prior on the constant velocity of each frame pair's motion "

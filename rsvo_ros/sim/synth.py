@@ -401,6 +401,10 @@ class SynthConfig:
     exposure: float = 0.0
     exposure_samples: int = 8
     noise: float = 0.0
+    # auto exposure / gain: each frame's brightness times exp(gain_variation * g(t)), g a smooth
+    # random signal of unit RMS (three sines of 0.2-1.5 Hz from the seed); before the noise,
+    # clipped to 0-255 like a sensor's output
+    gain_variation: float = 0.0
 
     def __post_init__(self):
         if self.lens != "none" and self.lens not in LENSES:
@@ -424,6 +428,9 @@ class SynthConfig:
             raise ValueError(f"exposure_samples must be >= 2, got {self.exposure_samples}")
         if not np.isfinite(self.noise) or self.noise < 0:
             raise ValueError(f"noise must be >= 0 grey levels, got {self.noise}")
+        if not (np.isfinite(self.gain_variation) and 0.0 <= self.gain_variation <= 1.0):
+            raise ValueError("gain variation must be in [0, 1] (log-gain RMS), got "
+                             f"{self.gain_variation}")
 
     @property
     def tau(self) -> float:
@@ -535,6 +542,16 @@ class SequenceRenderer:
         R_last = row_pose(np.array([cfg.height - 1.0]))[0]
         return so3_log(R0.T @ np.asarray(R_last).reshape(3, 3)) / readout
 
+    def gain(self, k: int) -> float:
+        """Frame ``k``'s brightness gain (``SynthConfig.gain_variation``; 1 without)."""
+        cfg = self.config
+        if cfg.gain_variation <= 0:
+            return 1.0
+        rng = np.random.default_rng([cfg.seed, 17])
+        freq, phase = rng.uniform(0.2, 1.5, 3), rng.uniform(0.0, 2 * np.pi, 3)
+        g = np.sum(np.sin(2 * np.pi * freq * k / cfg.rate_hz + phase)) / np.sqrt(1.5)
+        return float(np.exp(cfg.gain_variation * g))
+
     def render(self, k: int) -> Frame:
         cfg = self.config
         stamp, R0, p0, w, v, row_pose = self.frame_pose(k)
@@ -549,6 +566,8 @@ class SequenceRenderer:
         else:
             img = self.scene.radiance(*row_pose(rows), self.K, cfg.width, cfg.height,
                                       self._rays)  # fmt: skip
+        if cfg.gain_variation > 0:
+            img = img * np.float32(self.gain(k))
         if cfg.noise > 0:  # per frame, from the seed: the same bag every time
             rng = np.random.default_rng([cfg.seed, 13, k])
             img = img + rng.normal(0.0, cfg.noise, img.shape).astype(np.float32)

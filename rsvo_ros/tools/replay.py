@@ -275,6 +275,7 @@ def replay(cfg: ReplayConfig) -> dict:
     trajectories: list[dict[int, np.ndarray]] = [est]
     time_resets = 0
     refound = 0  # frames where the window re-found a lost map by its descriptors
+    brightness = 0  # frames tracked in the previous image's grey levels (auto exposure)
     last_map_ns = None
     images_read = 0
     pipeline: OdometryPipeline | None = None
@@ -401,6 +402,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     continue
                 statuses[res.status] += 1
                 refound += res.refound
+                brightness += res.brightness_change is not None
                 if res.time_reset:
                     time_resets += 1
                     if last_map_ns is not None:
@@ -452,6 +454,7 @@ def replay(cfg: ReplayConfig) -> dict:
         # the tracker's small-window refinement in use (px; 0: off)
         "klt_refine_window_px": (pipeline.tracker.refine_window_px if pipeline is not None
                                  else None),
+        "photometric_compensation": options.tracker.photometric_compensation,
         # numeric WindowOptions fields away from their defaults (--window-option)
         "window_options_changed": changed_window_options(options.window),
         # the line delay used at the end (line_delay auto: the estimate, see line_delay_auto)
@@ -478,6 +481,9 @@ def replay(cfg: ReplayConfig) -> dict:
         "time_resets": time_resets,
         # the window backend re-found its map (descriptors against the remembered landmarks)
         "map_refound": refound,
+        # frames whose brightness changed (auto exposure), tracked in the previous image's grey
+        # levels (TrackerOptions.photometric_compensation)
+        "frames_brightness_compensated": brightness,
         "trajectories": [{"first_stamp_ns": min(t), "frames": len(t)} for t in trajectories],
     }  # fmt: skip
     if auto and pipeline is not None:
@@ -923,6 +929,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="KLT: polish each track at full resolution with a PX window after the "
                         "pyramid's 21-px one (-1, default: 11 for the window backend, off for "
                         f"the pairwise one; 0: off; else 3-{MAX_REFINE_WINDOW_PX})")
+    p.add_argument("--no-photometric-compensation", action="store_true",
+                   help="KLT: do not map an image whose brightness changed (auto exposure) into "
+                        "the previous image's grey levels before tracking")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -964,6 +973,7 @@ def main(argv: list[str] | None = None) -> int:
     options.window.map.prior_acc_rad_s2 = args.angular_acceleration
     options.rotation_only_parallax_px = args.rotation_only_parallax
     options.uncertain_rotation_deg = uncertain
+    options.tracker.photometric_compensation = not args.no_photometric_compensation
     set_window_options(options, args.window_option)
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
                        args.camera_info_topic, args.ground_truth_topic,

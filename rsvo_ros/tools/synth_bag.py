@@ -53,6 +53,8 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
         writer.set_custom_data("rsvo.lens", config.lens)
         writer.set_custom_data("rsvo.exposure", format(float(config.exposure), ".12g"))
         writer.set_custom_data("rsvo.noise", format(float(config.noise), ".12g"))
+        writer.set_custom_data("rsvo.gain_variation", format(float(config.gain_variation),
+                                                              ".12g"))
         if compressed is None:
             c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
         else:
@@ -128,6 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
                    help="Gaussian sensor noise, grey levels (0-255) std, drawn per frame from "
                         "the seed (default 0)")
+    p.add_argument("--gain-variation", type=float, default=0.0, metavar="A",
+                   help="auto exposure / gain: each frame's brightness times exp(A g(t)), g a "
+                        "smooth random signal of unit RMS at 0.2-1.5 Hz (default 0: constant; "
+                        "0.2 gives about 0.7-1.5x, up to 10 %% from one frame to the next)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -139,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
                              severity=args.severity, width=args.resolution[0],
                              height=args.resolution[1], line_delay=args.line_delay,
                              seed=args.seed, lens=args.lens, exposure=args.exposure,
-                             noise=args.noise)  # fmt: skip
+                             noise=args.noise,
+                             gain_variation=args.gain_variation)  # fmt: skip
         summary = write_bag(args.out_bag, config, args.storage, args.overwrite,
                             progress=not args.no_progress, compressed=args.compressed)
     except (ValueError, FileExistsError) as exc:

@@ -35,6 +35,44 @@ def test_tracker_follows_a_known_shift_and_spreads_features(textured):
     assert cells.min() > 0
 
 
+def _brighter(img: np.ndarray, gain: float, offset: float) -> np.ndarray:
+    return np.clip(img.astype(float) * gain + offset + 0.5, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("gain, offset", [(1.25, 8.0), (0.7, -5.0)])
+def test_tracks_survive_an_auto_exposure_step(textured, gain, offset):
+    # an auto exposure step between two frames: KLT's squared grey-level differences lose
+    # tracks or pull them off; mapped back into the previous image's levels the shift is found
+    # as without the step
+    shifted = _brighter(np.roll(textured, (2, 3), axis=(0, 1)), gain, offset)
+    result = {}
+    for on in (True, False):
+        tracker = FeatureTracker(TrackerOptions(max_features=200, grid=(4, 3),
+                                                photometric_compensation=on))
+        tracker.track(textured)
+        pair = tracker.track(shifted)
+        inner = (pair.pts_prev[:, 0] > 10) & (pair.pts_prev[:, 1] > 10)
+        err = np.linalg.norm(pair.pts_curr[inner] - pair.pts_prev[inner] - [3.0, 2.0], axis=1)
+        result[on] = (int(np.sum(err < 0.1)), tracker.last_photometric)
+    (kept_on, change), (kept_off, none) = result[True], result[False]
+    assert change is not None and none is None
+    # the fitted change maps grey levels as the step did (the clipped highlights aside)
+    levels = np.array([60.0, 160.0])
+    assert np.allclose(change[0] * levels + change[1], gain * levels + offset, atol=8.0), result
+    assert kept_on > 100 and kept_on > 1.3 * kept_off, result
+
+
+def test_the_photometric_check_leaves_constant_brightness_alone(textured):
+    shifted = np.roll(textured, (2, 3), axis=(0, 1))
+    noisy = _brighter(shifted, 1.0, 0.0) + np.random.default_rng(0).integers(
+        0, 2, shifted.shape, dtype=np.uint8)  # a grey level of noise
+    for img in (shifted, noisy):
+        tracker = FeatureTracker(TrackerOptions(max_features=200, grid=(4, 3)))
+        tracker.track(textured)
+        tracker.track(img)
+        assert tracker.last_photometric is None
+
+
 @pytest.fixture(scope="module")
 def wide():
     return render_sequence(SynthConfig(frames=1, width=1280, height=360))[0].image

@@ -166,10 +166,31 @@ def test_exposure_blurs_along_the_motion_and_noise_has_its_std():
     assert not np.array_equal(d[0], d[1])
 
 
+def test_gain_variation_scales_each_frames_brightness():
+    """--gain-variation: each frame is the constant-brightness frame times its own gain
+    (clipped to 0-255), the gains vary smoothly from frame to frame by the asked log RMS,
+    and the frame's ground truth is unchanged."""
+    base = dict(frames=60, motion="walk", width=96, height=54, seed=5)
+    clean = SequenceRenderer(SynthConfig(**base))
+    varied = SequenceRenderer(SynthConfig(**base, gain_variation=0.2))
+    gains = np.array([varied.gain(k) for k in range(base["frames"])])
+    assert np.all(gains > 0) and clean.gain(7) == 1.0
+    assert 0.08 < np.std(np.log(gains)) < 0.4
+    assert np.max(np.abs(np.diff(np.log(gains)))) < 0.1  # smooth: an auto exposure's ramp
+    for k in (0, 30):
+        a, b = clean.render(k), varied.render(k)
+        unclipped = (a.image > 10) & (a.image < 200)
+        ratio = b.image[unclipped].astype(float) / a.image[unclipped]
+        assert np.median(ratio) == pytest.approx(gains[k], rel=0.02)
+        assert np.array_equal(a.R_world_cam, b.R_world_cam)
+
+
 @pytest.mark.parametrize("bad, match", [({"exposure": 0.04}, "exposure"),
                                         ({"exposure": -0.001}, "exposure"),
                                         ({"noise": -1.0}, "noise"),
                                         ({"noise": float("nan")}, "noise"),
+                                        ({"gain_variation": -0.1}, "gain variation"),
+                                        ({"gain_variation": 2.0}, "gain variation"),
                                         ({"exposure": 0.01, "exposure_samples": 1},
                                          "exposure_samples")])
 def test_sensor_settings_are_validated(bad, match):
@@ -259,9 +280,10 @@ def test_cli_refuses_to_overwrite_and_validates(tmp_path, capsys):
     assert "exposure must be in [0, 0.0333333) s" in capsys.readouterr().err
     blurred = tmp_path / "blurred"
     assert synth_main([str(blurred), "--frames", "2", "--resolution", "64x36", "--exposure",
-                       "0.01", "--noise", "2", "--no-progress"]) == 0
+                       "0.01", "--noise", "2", "--gain-variation", "0.2", "--no-progress"]) == 0
     meta = bagio.custom_data(blurred)
     assert (meta["rsvo.exposure"], meta["rsvo.noise"]) == ("0.01", "2")
+    assert meta["rsvo.gain_variation"] == "0.2"
     with pytest.raises(SystemExit):
         synth_main([str(tmp_path / "d"), "--resolution", "big"])
 

@@ -749,3 +749,18 @@ def test_replay_keeps_the_callers_tracker_options(vehicle_bag, tmp_path, monkeyp
                                               progress=False, options=options))  # fmt: skip
     assert seen and seen[0].grid == (4, 3) and seen[0].fb_threshold_px == 0.5
     assert seen[0].max_features == 300
+
+
+def test_brightness_changes_are_compensated_and_counted(tmp_path):
+    # an auto exposure varying the brightness from frame to frame (--gain-variation): the
+    # tracker maps each changed image into the previous one's grey levels; the summary counts
+    # those frames, --no-photometric-compensation tracks the images as they are
+    bag = tmp_path / "gain"
+    write_bag(bag, SynthConfig(frames=10, motion="walk", width=320, height=180, seed=3,
+                               gain_variation=0.3), progress=False)
+    runs = {"on": [], "off": ["--no-photometric-compensation"]}
+    counted = _summary_fields(bag, tmp_path, runs, "frames_brightness_compensated", 10)
+    assert counted["on"] >= 5 and counted["off"] == 0, counted
+    summary = {n: json.loads((tmp_path / n / "summary.json").read_text()) for n in runs}
+    assert summary["on"]["photometric_compensation"] is True
+    assert summary["off"]["photometric_compensation"] is False
