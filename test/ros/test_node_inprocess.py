@@ -77,11 +77,18 @@ class Harness:
                 self._idle()
 
     def _idle(self, timeout=10.0):
+        """Until no frame waits and none is being processed (the pipeline's lock is free),
+        checked again after a pause: the worker takes a frame before it takes the lock."""
         t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end and (self.node._pending is not None
-                                            or self.node._wake.is_set()):
-            time.sleep(0.01)
-        time.sleep(0.15)
+
+        def busy():
+            return (self.node._pending is not None or self.node._wake.is_set()
+                    or self.node._pipeline_lock.locked())
+
+        for _ in range(2):
+            while time.monotonic() < t_end and busy():
+                time.sleep(0.01)
+            time.sleep(0.15)
 
     def close(self):
         self.ex.shutdown()
