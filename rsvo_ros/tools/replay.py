@@ -1004,6 +1004,9 @@ def main(argv: list[str] | None = None) -> int:
                       f"started {len(s['trajectories'])} trajectories")
     if s.get("map_refound"):
         events.append(f"the map was lost and re-found {s['map_refound']} time(s)")
+    if s.get("frames_brightness_compensated"):
+        events.append(f"the brightness changed on {s['frames_brightness_compensated']} "
+                      "frame(s) (auto exposure): tracked in the previous image's grey levels")
     if events:
         print("rsvo_replay: " + "; ".join(events))
     if "line_delay_auto" in s:

@@ -751,7 +751,7 @@ def test_replay_keeps_the_callers_tracker_options(vehicle_bag, tmp_path, monkeyp
     assert seen[0].max_features == 300
 
 
-def test_brightness_changes_are_compensated_and_counted(tmp_path):
+def test_brightness_changes_are_compensated_and_counted(tmp_path, capsys):
     # an auto exposure varying the brightness from frame to frame (--gain-variation): the
     # tracker maps each changed image into the previous one's grey levels; the summary counts
     # those frames, --no-photometric-compensation tracks the images as they are
@@ -761,6 +761,9 @@ def test_brightness_changes_are_compensated_and_counted(tmp_path):
     runs = {"on": [], "off": ["--no-photometric-compensation"]}
     counted = _summary_fields(bag, tmp_path, runs, "frames_brightness_compensated", 10)
     assert counted["on"] >= 5 and counted["off"] == 0, counted
+    out = capsys.readouterr().out
+    assert out.count("the brightness changed on") == 1  # said by the run that mapped frames
+    assert f"the brightness changed on {counted['on']} frame(s)" in out
     summary = {n: json.loads((tmp_path / n / "summary.json").read_text()) for n in runs}
     assert summary["on"]["photometric_compensation"] is True
     assert summary["off"]["photometric_compensation"] is False
