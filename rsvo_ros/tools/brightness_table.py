@@ -67,8 +67,8 @@ def run_case(out: Path, group: str, motion: str, severity: float, seed: int, gai
     row = {"case": bag.name, "group": group, "motion": motion, "severity": severity,
            "seed": seed, "gain_variation": gain}
     on = _replay(bag, out / f"{bag.name}__rs", "rs")
-    row["frames_compensated"], row["frames"] = on["frames_brightness_compensated"], \
-        on["frames_in"]  # fmt: skip
+    row["frames_compensated"] = on["frames_brightness_compensated"]
+    row["frames"] = on["frames_in"]
     row["ate_rs_m"] = on["accuracy"]["ate_m"]["rmse"]
     row["ate_rs_uncompensated_m"] = _replay(bag, out / f"{bag.name}__rs_off", "rs",
                                             False)["accuracy"]["ate_m"]["rmse"]
