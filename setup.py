@@ -10,10 +10,12 @@ setup(
     name=PACKAGE_NAME,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*"]),
+    package_data={"rsvo_ros.ros": ["fastdds_large_images.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE_NAME}"]),
         (f"share/{PACKAGE_NAME}", ["package.xml"]),
         (f"share/{PACKAGE_NAME}/launch", glob("launch_scripts/*.launch.py")),
+        (f"share/{PACKAGE_NAME}/config", ["rsvo_ros/ros/fastdds_large_images.xml"]),
     ],
     install_requires=["setuptools"],
     extras_require={"test": ["pytest", "pytest-timeout", "ruff"]},

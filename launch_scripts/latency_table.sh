@@ -5,7 +5,11 @@
 # table (python -m rsvo_ros.ros.latency --summary). A fresh node per rate: a probe that paused
 # between rates would lose its first frame to the node's "stamp far ahead" rule. Results (one
 # JSON per run) go to results/latency (override with RSVO_LATENCY_OUTPUT); frames per run with
-# RSVO_LATENCY_FRAMES (default 300). About 8 minutes; run it on an otherwise idle machine.
+# RSVO_LATENCY_FRAMES (default 300). RSVO_LATENCY_DDS_PROFILES lists the Fast DDS profiles to
+# run the node and the probe (the camera) with, each row with each in turn: "default" (Fast
+# DDS's own defaults; the default) and "large_images" (the shipped profile, python -m
+# rsvo_ros.ros.dds; README "Large images over DDS"), e.g. "default large_images". About 8
+# minutes per profile; run it on an otherwise idle machine.
 set -euo pipefail
 REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
@@ -13,6 +17,15 @@ bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
 source "$REPO_ROOT/launch_scripts/ros_env.sh"
 OUT="${RSVO_LATENCY_OUTPUT:-$REPO_ROOT/results/latency}"
 FRAMES="${RSVO_LATENCY_FRAMES:-300}"
+PROFILES="${RSVO_LATENCY_DDS_PROFILES:-default}"
+for profile in $PROFILES; do
+    case "$profile" in
+        default | large_images) ;;
+        *) echo "RSVO_LATENCY_DDS_PROFILES takes default and large_images, got $profile" >&2
+           exit 2 ;;
+    esac
+done
+LARGE_IMAGES="$(python -m rsvo_ros.ros.dds)"
 mkdir -p "$OUT"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-87}"
 results=()
@@ -21,14 +34,23 @@ for res in 640x480 1280x720; do
     # advertises, so the node's auto QoS would time out and fall back to best effort)
     ld=$(python -c "print(0.036 / int('$res'.split('x')[1]))")
     for rate in 10 15 30; do
-        rsvo_node --ros-args -p line_delay:="$ld" -p image_qos_reliability:=reliable \
-            > "$OUT/node_${res}_${rate}hz.log" 2>&1 &
-        node_pid=$!
-        python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" --frames "$FRAMES" \
-            --motion walk --node-pid "$node_pid" --json "$OUT/latency_${res}_${rate}hz.json"
-        kill -INT "$node_pid"
-        wait "$node_pid" || true
-        results+=("$OUT/latency_${res}_${rate}hz.json")
+        for profile in $PROFILES; do
+            if [ "$profile" = large_images ]; then
+                export FASTRTPS_DEFAULT_PROFILES_FILE="$LARGE_IMAGES"
+            else
+                unset FASTRTPS_DEFAULT_PROFILES_FILE
+            fi
+            run="${res}_${rate}hz_${profile}"
+            rsvo_node --ros-args -p line_delay:="$ld" -p image_qos_reliability:=reliable \
+                > "$OUT/node_$run.log" 2>&1 &
+            node_pid=$!
+            python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" \
+                --frames "$FRAMES" --motion walk --node-pid "$node_pid" \
+                --json "$OUT/latency_$run.json"
+            kill -INT "$node_pid"
+            wait "$node_pid" || true
+            results+=("$OUT/latency_$run.json")
+        done
     done
 done
 python -m rsvo_ros.ros.latency --summary "${results[@]}" | tee "$OUT/table.md"

@@ -53,6 +53,15 @@ def test_colcon_build_installs_a_runnable_rsvo_node(tmp_path):
     where = subprocess.run([sys.executable, "-c", "import rsvo_ros; print(rsvo_ros.__file__)"],
                            capture_output=True, text=True, env=env, cwd=tmp_path)
     assert str(site) in where.stdout
+    # the Fast DDS profile for large images: in share/ for ROS users, beside the module for
+    # python -m rsvo_ros.ros.dds
+    shared = install / "share" / "rsvo_ros" / "config" / "fastdds_large_images.xml"
+    assert shared.is_file()
+    path = subprocess.run([sys.executable, "-m", "rsvo_ros.ros.dds"], capture_output=True,
+                          text=True, env=env, cwd=tmp_path)
+    assert path.returncode == 0, path.stderr
+    assert path.stdout.strip().startswith(str(site))
+    assert Path(path.stdout.strip()).read_bytes() == shared.read_bytes()
 
 
 ODOM_EXCHANGE = r"""

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -124,6 +125,10 @@ def main(argv: list[str] | None = None) -> int:
                "mapping_ms_median": diag.get("mapping_time_ms_median"),
                "publishing_ms_median": diag.get("publishing_time_ms_median"),
                "processing_ms_median": diag.get("processing_time_ms_median"),
+               # how old images were on arrival at the node (its last 100): this probe's
+               # message construction, DDS, and the node's executor
+               "image_delay_ms_median": diag.get("image_delay_ms_median"),
+               "dds_profile": dds_profile_name(),
                # which frames got no odometry (dropped while busy, held, lost): a start-up
                # phase shows as the first indices
                "missing_frames": [k for k, s in enumerate(sent) if s not in got],
@@ -150,14 +155,15 @@ def summary_table(rows: list[dict]) -> str:
     issue-14 target the row has and whether it was met."""
     def key(r):
         w, h = (int(x) for x in r["resolution"].split("x"))
-        return (w * h, r["rate_hz"])
+        return (w * h, r["rate_hz"], r.get("dds_profile", "default"))
 
     def ms(x):
         return "-" if x is None else f"{x:.0f}"
 
-    lines = ["| resolution | rate | frames with odometry | delay median / p95 | node CPU "
-             "| tracking / mapping / publishing (median) | dropped / held | target |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| resolution | rate | Fast DDS profile | frames with odometry | delay median / p95 "
+             "| image arrival (median) | node CPU | tracking / mapping / publishing (median) "
+             "| dropped / held | target |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=key):
         frames = r["odometry"] / max(r["sent"], 1)
         target = TARGETS.get((r["resolution"], float(r["rate_hz"])))
@@ -176,12 +182,28 @@ def summary_table(rows: list[dict]) -> str:
             verdict.append(f"CPU <= {cpu_target / 100:.1f} cores {'met' if ok else 'not met'}")
         nf = r.get("node_frames", {})
         lines.append(
-            f"| {r['resolution']} | {r['rate_hz']:g} Hz | {r['odometry']} / {r['sent']} "
-            f"({100 * frames:.1f} %) | {ms(r['latency_ms_median'])} / "
-            f"{ms(r['latency_ms_p95'])} ms | {ms(cpu)} % | {r.get('tracking_ms_median')} / "
+            f"| {r['resolution']} | {r['rate_hz']:g} Hz | {r.get('dds_profile', 'default')} | "
+            f"{r['odometry']} / {r['sent']} ({100 * frames:.1f} %) | "
+            f"{ms(r['latency_ms_median'])} / {ms(r['latency_ms_p95'])} ms | "
+            f"{r.get('image_delay_ms_median') or '-'} ms | {ms(cpu)} % | "
+            f"{r.get('tracking_ms_median')} / "
             f"{r.get('mapping_ms_median')} / {r.get('publishing_ms_median')} ms | "
             f"{nf.get('dropped', '-')} / {nf.get('held', '-')} | {'; '.join(verdict) or '-'} |")
     return "\n".join(lines)
+
+
+def dds_profile_name() -> str:
+    """Which Fast DDS profile this process runs with: ``default``, ``large_images`` (the
+    shipped one, :mod:`rsvo_ros.ros.dds`) or the path of another profile file."""
+    from rsvo_ros.ros.dds import LARGE_IMAGES_PROFILE, PROFILE_ENV
+
+    path = os.environ.get(PROFILE_ENV)
+    if not path:
+        return "default"
+    try:
+        return "large_images" if os.path.samefile(path, LARGE_IMAGES_PROFILE) else path
+    except OSError:
+        return path
 
 
 FRAME_COUNTS = ("received", "processed", "dropped", "held", "skipped", "bad", "time_resets")
@@ -194,7 +216,6 @@ def _frame_counts(diag: dict[str, str]) -> dict[str, int]:
 
 def _find_pid(name: str) -> int | None:
     """The first process (not this one) whose command line names ``name``."""
-    import os
     from pathlib import Path
 
     for d in Path("/proc").iterdir():
@@ -213,8 +234,6 @@ def _cpu_seconds(pid: int | None) -> float | None:
     """User + system CPU seconds of a process (all its threads), None if unknown."""
     if pid is None:
         return None
-    import os
-
     try:
         fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
     except OSError:

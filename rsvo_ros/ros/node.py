@@ -9,6 +9,7 @@ diagnostics. Parameters live in :mod:`rsvo_ros.ros.params`, message conversion i
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -46,6 +47,7 @@ from rsvo_ros.ros.convert import (
     stamp_ns,
     xyz_cloud_data,
 )
+from rsvo_ros.ros.dds import DEFAULT_SHM_SEGMENT_BYTES
 from rsvo_ros.ros.draw import draw_tracks
 from rsvo_ros.ros.params import (
     PARAMETERS,
@@ -61,6 +63,11 @@ except ImportError:  # pragma: no cover - depends on the install
     TFMessage = None
 
 QOS_WAIT_S = 10.0  # auto QoS: wait this long for a publisher, then subscribe best effort
+# images larger than Fast DDS's default shared-memory segment that arrive this late (median of
+# 30 or more, ms) get a one-time hint at the shipped profile: 12-15 ms against 2-4 ms with it
+# for 1280x720 mono8 here (README, "Large images over DDS"); under a second, as a later median
+# is a stamp from another clock (a bag's), not a transport
+LARGE_IMAGE_HINT_MS = (8.0, 1000.0)
 # what tf2_ros's broadcasters use: /tf keeps 100, /tf_static is latched for late subscribers
 TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -99,6 +106,11 @@ class RsvoNode(Node):
                       "brightness_compensated": 0}  # fmt: skip
         self._bad_kinds: set[str] = set()
         self._recv_times: deque = deque(maxlen=100)
+        # how old each image is when it arrives (the node's clock minus its stamp): the camera
+        # driver's and the transport's share of the delay
+        self._image_delay_ms: deque = deque(maxlen=100)
+        self._image_bytes = 0
+        self._large_image_hinted = False
         self._proc_ms: deque = deque(maxlen=100)
         self._track_ms: deque = deque(maxlen=100)  # per frame, without the window BA
         self._map_ms: deque = deque(maxlen=100)  # per keyframe: the window BA
@@ -198,6 +210,9 @@ class RsvoNode(Node):
 
     def _on_image(self, msg: Image) -> None:
         self._recv_times.append(time.monotonic())
+        self._image_delay_ms.append(
+            (self.get_clock().now().nanoseconds - stamp_ns(msg.header)) * 1e-6)
+        self._image_bytes = len(msg.data)
         with self._lock:
             self.stats["received"] += 1
             if self._pending is not None:
@@ -420,6 +435,8 @@ class RsvoNode(Node):
             **{f"{name}_time_ms_median": f"{np.median(ms):.1f}" if ms else "n/a"
                for name, ms in (("processing", self._proc_ms), ("tracking", self._track_ms),
                                 ("mapping", self._map_ms), ("publishing", self._publish_ms))},
+            **{f"image_delay_ms_{name}": f"{np.percentile(self._image_delay_ms, q):.1f}"
+               if self._image_delay_ms else "n/a" for name, q in (("median", 50), ("p95", 95))},
             "inlier_ratio": f"{self._last_inlier_ratio:.3f}",
             "tracking_state": self._tracking,
             **{k: str(v) for k, v in self.stats.items()},
@@ -431,6 +448,24 @@ class RsvoNode(Node):
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [st]
         self.pub_diag.publish(arr)
+        self._hint_large_images()
+
+    def _hint_large_images(self) -> None:
+        """Once: images too large for Fast DDS's default shared-memory segment arrive late."""
+        if self._large_image_hinted or len(self._image_delay_ms) < 30 \
+                or self._image_bytes <= DEFAULT_SHM_SEGMENT_BYTES \
+                or os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp":
+            return
+        delay = float(np.median(self._image_delay_ms))
+        if not LARGE_IMAGE_HINT_MS[0] < delay < LARGE_IMAGE_HINT_MS[1]:
+            return
+        self._large_image_hinted = True
+        self.get_logger().info(
+            f"images of {self._image_bytes // 1024} KB arrive {delay:.0f} ms after their stamp "
+            f"(median): larger than Fast DDS's default shared-memory segment "
+            f"({DEFAULT_SHM_SEGMENT_BYTES // 1024} KB), they leave its fast path. In the "
+            f"camera driver's environment: export FASTRTPS_DEFAULT_PROFILES_FILE=$(python -m "
+            f"rsvo_ros.ros.dds) (README, 'Large images over DDS')")
 
     def _line_delay_diagnostics(self) -> dict[str, str]:
         pipeline = self.pipeline

@@ -452,7 +452,9 @@ def lm_batch(R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations, la
     R_out, t_out, vel_out = np.empty_like(R), np.empty_like(t), np.empty_like(vel)
     cost, iters = np.empty(B), np.empty(B, np.int64)
     for b in nb.prange(B):  # hypotheses are independent: over the cores, same result
-        _lm_into(b, R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations,
+        # prange's index is unsigned: as int64 the serial loop's compiled _lm_into serves
+        # (a second, uint64 specialisation took 4 s more of a cold first start)
+        _lm_into(np.int64(b), R, t, vel, x_prev, x_curr, s_prev, s_curr, cam, idx, iterations,
                  lambda_init, rel_tol, robust, p2, mu, basis, limits, anchor, R_out, t_out,
                  vel_out, cost, iters)  # fmt: skip
     return R_out, t_out, vel_out, cost, iters

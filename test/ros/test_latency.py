@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from rsvo_ros.ros.latency import _frame_counts, summary_table
+from rsvo_ros.ros.dds import LARGE_IMAGES_PROFILE, PROFILE_ENV
+from rsvo_ros.ros.latency import _frame_counts, dds_profile_name, summary_table
 
 
 def test_frame_counts_come_from_the_nodes_diagnostics():
@@ -12,8 +13,9 @@ def test_frame_counts_come_from_the_nodes_diagnostics():
     assert _frame_counts({}) == {}  # no diagnostics yet
 
 
-def _row(resolution, rate, odometry, p95, cpu=50.0):
+def _row(resolution, rate, odometry, p95, cpu=50.0, profile="default"):
     return {"rate_hz": rate, "resolution": resolution, "sent": 300, "odometry": odometry,
+            "dds_profile": profile, "image_delay_ms_median": "12.5",
             "latency_ms_median": 20.0, "latency_ms_p95": p95, "node_cpu_percent": cpu,
             "tracking_ms_median": "12.0", "mapping_ms_median": "40.0",
             "publishing_ms_median": "1.0",
@@ -26,9 +28,29 @@ def test_summary_table_sorts_rows_and_judges_each_target():
                            _row("1280x720", 15.0, 290, 61.0, cpu=160.0)])
     lines = table.splitlines()
     assert len(lines) == 2 + 3
-    assert lines[2].startswith("| 640x480 | 10 Hz | 300 / 300 (100.0 %)")
+    assert lines[2].startswith("| 640x480 | 10 Hz | default | 300 / 300 (100.0 %) | 20 / 25 ms "
+                               "| 12.5 ms |")
     assert lines[2].endswith("| - |")  # no target at 640x480 10 Hz
     # 285 of 300 is 95 %: >= 90 % met, p95 70 <= 80 met
     assert ">= 90 % met; p95 <= 80 ms met" in lines[4]
     # 290 of 300 is 96.7 % (< 98 %), p95 61 > 60, 1.6 cores > 1.5
     assert ">= 98 % not met; p95 <= 60 ms not met; CPU <= 1.5 cores not met" in lines[3]
+
+
+def test_rows_of_both_dds_profiles_sit_side_by_side():
+    table = summary_table([_row("1280x720", 15.0, 300, 45.0, profile="large_images"),
+                           _row("640x480", 30.0, 300, 40.0), _row("1280x720", 15.0, 299, 70.0)])
+    lines = table.splitlines()[2:]
+    assert [line.split(" | ")[2] for line in lines] == ["default", "default", "large_images"]
+    assert "p95 <= 60 ms not met" in lines[1] and "p95 <= 60 ms met" in lines[2]
+
+
+def test_the_probe_names_the_dds_profile_it_runs_with(monkeypatch, tmp_path):
+    monkeypatch.delenv(PROFILE_ENV, raising=False)
+    assert dds_profile_name() == "default"
+    monkeypatch.setenv(PROFILE_ENV, str(LARGE_IMAGES_PROFILE))
+    assert dds_profile_name() == "large_images"
+    other = tmp_path / "mine.xml"
+    other.write_text("<profiles/>")
+    monkeypatch.setenv(PROFILE_ENV, str(other))
+    assert dds_profile_name() == str(other)

@@ -146,6 +146,8 @@ def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_pa
     diag = data["diagnostics"][-1]
     assert int(diag["received"]) == FRAMES and int(diag["dropped"]) == 0
     assert diag["brightness_compensated"] == "0"  # a constant-brightness bag
+    # the images' age on arrival (the player stamps them with the bag's times: any number)
+    assert np.isfinite(float(diag["image_delay_ms_median"]))
     # and against ground truth: the same ATE as the offline replay, which is small next to the
     # ~5 m this camera drives (a wrong frame or chaining order would break both)
     ref_summary = json.loads((tmp_path / "ref" / "summary.json").read_text())

@@ -441,3 +441,41 @@ def test_rectified_images_use_the_projection_and_no_lens(ros_context):
         assert np.array_equal(h.node.pipeline.K, np.array(info.p).reshape(3, 4)[:, :3])
     finally:
         h.close()
+
+
+class _Log:
+    def __init__(self):
+        self.infos = []
+
+    def info(self, text):
+        self.infos.append(text)
+
+
+@pytest.mark.parametrize("width,height,age_ms,hinted", [(1280, 720, 20.0, True),
+                                                        (640, 480, 20.0, False),
+                                                        (1280, 720, 2.0, False)])
+def test_late_large_images_get_one_hint_at_the_dds_profile(ros_context, monkeypatch, width,
+                                                           height, age_ms, hinted):
+    """Images over Fast DDS's default 512 KB shared-memory segment that arrive late: one log
+    line naming the shipped profile; small or prompt images: none. The age is in the
+    diagnostics either way."""
+    h = Harness(ros_context, [Parameter("model", value="gs")])
+    log = _Log()
+    monkeypatch.setattr(h.node, "get_logger", lambda: log)
+    try:
+        for _ in range(40):  # no camera info: the images only pass the callback
+            m = Image()
+            m.height, m.width, m.encoding, m.step = height, width, "mono8", width
+            m.data = bytes(width * height)
+            ns = h.node.get_clock().now().nanoseconds - round(age_ms * 1e6)
+            m.header.stamp.sec, m.header.stamp.nanosec = ns // 10**9, ns % 10**9
+            h.node._on_image(m)
+        for _ in range(2):
+            h.node._publish_diagnostics()
+        hints = [t for t in log.infos if "FASTRTPS_DEFAULT_PROFILES_FILE" in t]
+        assert len(hints) == (1 if hinted else 0), log.infos
+        if hinted:
+            assert "900 KB" in hints[0] and "python -m rsvo_ros.ros.dds" in hints[0]
+        assert age_ms <= np.median(h.node._image_delay_ms) < age_ms + 50.0
+    finally:
+        h.close()
