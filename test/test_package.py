@@ -49,6 +49,7 @@ def test_colcon_build_installs_a_runnable_rsvo_node(tmp_path):
                          timeout=60)
     assert run.returncode == 0, run.stderr
     assert "rsvo_node" in run.stdout
+    assert "FASTRTPS_DEFAULT_PROFILES_FILE=$(python -m rsvo_ros.ros.dds)" in run.stdout
     # the installed copy is what ran, not the checkout
     where = subprocess.run([sys.executable, "-c", "import rsvo_ros; print(rsvo_ros.__file__)"],
                            capture_output=True, text=True, env=env, cwd=tmp_path)

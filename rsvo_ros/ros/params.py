@@ -265,4 +265,8 @@ def help_text() -> str:
     lines = ["usage: rsvo_node [--ros-args -p name:=value ...]", "", "parameters:"]
     for name, (default, desc) in PARAMETERS.items():
         lines.append(f"  {name} (default {default!r}): {desc.description}")
+    lines += ["", "images over 512 KB (1280x720 mono8 and up) leave Fast DDS's default "
+              "shared-memory segment and arrive 10-15 ms later; in the camera driver's (and "
+              "this node's) environment:",
+              "  export FASTRTPS_DEFAULT_PROFILES_FILE=$(python -m rsvo_ros.ros.dds)"]
     return "\n".join(lines)
