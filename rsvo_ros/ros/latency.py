@@ -125,6 +125,9 @@ def main(argv: list[str] | None = None) -> int:
                "mapping_ms_median": diag.get("mapping_time_ms_median"),
                "publishing_ms_median": diag.get("publishing_time_ms_median"),
                "processing_ms_median": diag.get("processing_time_ms_median"),
+               # the node's slow frames (its last 100), beside the delay's p95
+               "processing_ms_p95": diag.get("processing_time_ms_p95"),
+               "tracking_ms_p95": diag.get("tracking_time_ms_p95"),
                # how old images were on arrival at the node (its last 100): this probe's
                # message construction, DDS, and the node's executor
                "image_delay_ms_median": diag.get("image_delay_ms_median"),

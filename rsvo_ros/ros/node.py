@@ -432,9 +432,10 @@ class RsvoNode(Node):
         st.message = self._state
         vals = {
             "input_rate_hz": f"{rate:.2f}",
-            **{f"{name}_time_ms_median": f"{np.median(ms):.1f}" if ms else "n/a"
+            **{f"{name}_time_ms_{q_name}": f"{np.percentile(ms, q):.1f}" if ms else "n/a"
                for name, ms in (("processing", self._proc_ms), ("tracking", self._track_ms),
-                                ("mapping", self._map_ms), ("publishing", self._publish_ms))},
+                                ("mapping", self._map_ms), ("publishing", self._publish_ms))
+               for q_name, q in (("median", 50), ("p95", 95))},
             **{f"image_delay_ms_{name}": f"{np.percentile(self._image_delay_ms, q):.1f}"
                if self._image_delay_ms else "n/a" for name, q in (("median", 50), ("p95", 95))},
             "inlier_ratio": f"{self._last_inlier_ratio:.3f}",

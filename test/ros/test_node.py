@@ -148,6 +148,9 @@ def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_pa
     assert diag["brightness_compensated"] == "0"  # a constant-brightness bag
     # the images' age on arrival (the player stamps them with the bag's times: any number)
     assert np.isfinite(float(diag["image_delay_ms_median"]))
+    for stage in ("processing", "tracking", "publishing"):  # the slow frames beside the usual
+        assert 0 <= float(diag[f"{stage}_time_ms_median"]) <= float(diag[f"{stage}_time_ms_p95"])
+    assert float(diag["processing_time_ms_p95"]) > 0
     # and against ground truth: the same ATE as the offline replay, which is small next to the
     # ~5 m this camera drives (a wrong frame or chaining order would break both)
     ref_summary = json.loads((tmp_path / "ref" / "summary.json").read_text())
