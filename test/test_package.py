@@ -63,6 +63,9 @@ def test_colcon_build_installs_a_runnable_rsvo_node(tmp_path):
     assert path.returncode == 0, path.stderr
     assert path.stdout.strip().startswith(str(site))
     assert Path(path.stdout.strip()).read_bytes() == shared.read_bytes()
+    # the parameter file at the defaults, for --params-file
+    assert (install / "share" / "rsvo_ros" / "config" / "rsvo_node.yaml").read_text() == \
+        (REPO_ROOT / "rsvo_ros" / "ros" / "rsvo_node.yaml").read_text()
 
 
 ODOM_EXCHANGE = r"""

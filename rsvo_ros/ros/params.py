@@ -262,7 +262,10 @@ def image_subscription(p: NodeConfig | dict) -> tuple[str, str]:
 
 def help_text() -> str:
     """``rsvo_node --help``: every parameter with its default and description."""
-    lines = ["usage: rsvo_node [--ros-args -p name:=value ...]", "", "parameters:"]
+    lines = ["usage: rsvo_node [--ros-args -p name:=value ... | --params-file FILE]", "",
+             "parameters (as a parameter file at the defaults, with these descriptions: "
+             "python -m rsvo_ros.ros.params, installed as "
+             "share/rsvo_ros/config/rsvo_node.yaml):"]
     for name, (default, desc) in PARAMETERS.items():
         lines.append(f"  {name} (default {default!r}): {desc.description}")
     lines += ["", "images over 512 KB (1280x720 mono8 and up) leave Fast DDS's default "
@@ -270,3 +273,77 @@ def help_text() -> str:
               "this node's) environment:",
               "  export FASTRTPS_DEFAULT_PROFILES_FILE=$(python -m rsvo_ros.ros.dds)"]
     return "\n".join(lines)
+
+
+DEFAULTS_FILE = Path(__file__).with_name("rsvo_node.yaml")
+
+
+def _yaml_value(value) -> str:
+    """A parameter value as ROS 2's parameter-file parser reads it back with the same type:
+    floats always with a point, strings quoted."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        text = repr(value)
+        if "." not in text and "inf" not in text and "nan" not in text:
+            text = text.replace("e", ".0e") if "e" in text else text + ".0"
+        return text
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
+    raise TypeError(f"no parameter-file form for {type(value).__name__}")
+
+
+def _range_text(desc: ParameterDescriptor) -> str:
+    if desc.floating_point_range:
+        r = desc.floating_point_range[0]
+        return f" Range {r.from_value:g} to {r.to_value:g}."
+    if desc.integer_range:
+        r = desc.integer_range[0]
+        return f" Range {r.from_value} to {r.to_value}."
+    return ""
+
+
+def defaults_yaml(node_name: str = "rsvo_node") -> str:
+    """A ROS 2 parameter file with every parameter of the node at its default, each under its
+    description and range as comments: ``rsvo_node --ros-args --params-file FILE``."""
+    import textwrap
+
+    lines = ["# rsvo_node's parameters at their defaults, each with its description (generated",
+             "# by python -m rsvo_ros.ros.params; rsvo_node --help lists the same). Copy, edit",
+             "# and start the node with: rsvo_node --ros-args --params-file FILE",
+             f"{node_name}:", "  ros__parameters:"]
+    for name, (default, desc) in PARAMETERS.items():
+        text = desc.description + _range_text(desc)
+        lines += textwrap.wrap(text, width=95, initial_indent="    # ",
+                               subsequent_indent="    # ")
+        lines.append(f"    {name}: {_yaml_value(default)}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rsvo_ros.ros.params [--output FILE]``: the defaults as a parameter file."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m rsvo_ros.ros.params",
+                                description="Write rsvo_node's parameters at their defaults, "
+                                "with descriptions, as a ROS 2 parameter file (stdout or "
+                                "--output). The same file is installed as "
+                                "share/rsvo_ros/config/rsvo_node.yaml.")
+    p.add_argument("--output", default=None, help="write it here instead of stdout")
+    args = p.parse_args(argv)
+    text = defaults_yaml()
+    if args.output:
+        Path(args.output).write_text(text)
+    else:
+        print(text, end="")
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import rclpy
+import yaml
 from nav_msgs.msg import Odometry, Path
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
@@ -21,6 +22,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
 
 from rsvo_ros.ros.node import RsvoNode
+from rsvo_ros.ros.params import DEFAULTS_FILE, PARAMETERS, _yaml_value, defaults_yaml
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 
 pytestmark = pytest.mark.ros
@@ -479,3 +481,46 @@ def test_late_large_images_get_one_hint_at_the_dds_profile(ros_context, monkeypa
         assert age_ms <= np.median(h.node._image_delay_ms) < age_ms + 50.0
     finally:
         h.close()
+
+
+def _node_with_params_file(path, domain_offset):
+    """An rsvo_node started as `rsvo_node --ros-args --params-file path` would start."""
+    ctx = rclpy.Context()
+    ctx.init(args=["--ros-args", "--params-file", str(path)],
+             domain_id=200 + (os.getpid() + domain_offset) % 30)
+    return ctx, RsvoNode(context=ctx)
+
+
+def test_the_shipped_parameter_file_is_every_default_and_loads(tmp_path):
+    """rsvo_ros/ros/rsvo_node.yaml (share/rsvo_ros/config/ once installed) is what
+    `python -m rsvo_ros.ros.params` writes: every parameter at its default, typed so that the
+    node takes it; an edited copy changes what it says."""
+    assert DEFAULTS_FILE.read_text() == defaults_yaml(), \
+        "regenerate it: python -m rsvo_ros.ros.params --output rsvo_ros/ros/rsvo_node.yaml"
+    ctx, node = _node_with_params_file(DEFAULTS_FILE, 1)
+    try:
+        for name, (default, _) in PARAMETERS.items():
+            value = node.get_parameter(name).value
+            assert value == default and type(value) is type(default), (name, value)
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+    edited = DEFAULTS_FILE.read_text().replace("model: 'rs'", "model: 'gs'") \
+        .replace("line_delay: 0.0", "line_delay: 5.0e-05") \
+        .replace("max_features: 500", "max_features: 300")
+    (tmp_path / "mine.yaml").write_text(edited)
+    ctx, node = _node_with_params_file(tmp_path / "mine.yaml", 2)
+    try:
+        assert node.p["model"] == "gs" and node.p["max_features"] == 300
+        assert node.p["line_delay"] == pytest.approx(5e-5)
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+
+
+@pytest.mark.parametrize("value,text", [(0.0, "0.0"), (5e-05, "5.0e-05"), (1e20, "1.0e+20"),
+                                        (2.5, "2.5"), (3, "3"), (True, "true"),
+                                        ("it's", "'it''s'"), ([0.0, 1.0], "[0.0, 1.0]")])
+def test_parameter_file_values_keep_their_type(value, text):
+    assert _yaml_value(value) == text
+    assert yaml.safe_load(f"x: {text}")["x"] == value
