@@ -175,7 +175,12 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(measure(w, h, args.encoding, profile, args.frames, args.rate))
     print(table(rows))
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1))
+        try:
+            Path(args.json).write_text(json.dumps(rows, indent=1))
+        except OSError as exc:
+            print(f"python -m rsvo_ros.ros.dds: cannot write {args.json}: {exc.strerror or exc}",
+                  file=sys.stderr)
+            return 1
     return 0
 
 

@@ -7,6 +7,7 @@ image_tools does; :func:`read_config` turns the declared values into a checked
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -186,6 +187,25 @@ class NodeConfig:
         return self.values[name]
 
 
+def _yaml_value(value) -> str:
+    """A parameter value as ROS 2's parameter-file parser reads it back with the same type:
+    floats always with a point, strings quoted."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        text = repr(value)
+        if "." not in text and "inf" not in text and "nan" not in text:
+            text = text.replace("e", ".0e") if "e" in text else text + ".0"
+        return text
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
+    raise TypeError(f"no parameter-file form for {type(value).__name__}")
+
+
 def params_yaml(estimate: dict, source: str, mode: str = "fixed",
                 node_name: str = "rsvo_node") -> str:
     """A ROS 2 parameter file for the node with a line delay estimate (a
@@ -202,8 +222,8 @@ def params_yaml(estimate: dict, source: str, mode: str = "fixed",
             "intervals\n"
             f"{node_name}:\n"
             "  ros__parameters:\n"
-            f"    line_delay: {estimate['line_delay_s']:.6g}\n"
-            f"    line_delay_mode: {mode}\n")
+            f"    line_delay: {_yaml_value(float(format(estimate['line_delay_s'], '.6g')))}\n"
+            f"    line_delay_mode: {_yaml_value(mode)}\n")
 
 
 # the string parameters that take one of a few values
@@ -278,25 +298,6 @@ def help_text() -> str:
 DEFAULTS_FILE = Path(__file__).with_name("rsvo_node.yaml")
 
 
-def _yaml_value(value) -> str:
-    """A parameter value as ROS 2's parameter-file parser reads it back with the same type:
-    floats always with a point, strings quoted."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        text = repr(value)
-        if "." not in text and "inf" not in text and "nan" not in text:
-            text = text.replace("e", ".0e") if "e" in text else text + ".0"
-        return text
-    if isinstance(value, str):
-        return "'" + value.replace("'", "''") + "'"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
-    raise TypeError(f"no parameter-file form for {type(value).__name__}")
-
-
 def _range_text(desc: ParameterDescriptor) -> str:
     if desc.floating_point_range:
         r = desc.floating_point_range[0]
@@ -337,13 +338,16 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     text = defaults_yaml()
     if args.output:
-        Path(args.output).write_text(text)
+        try:
+            Path(args.output).write_text(text)
+        except OSError as exc:
+            print(f"python -m rsvo_ros.ros.params: cannot write {args.output}: "
+                  f"{exc.strerror or exc}", file=sys.stderr)
+            return 1
     else:
         print(text, end="")
     return 0
 
 
 if __name__ == "__main__":
-    import sys
-
     sys.exit(main())

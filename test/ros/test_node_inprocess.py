@@ -22,7 +22,13 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
 
 from rsvo_ros.ros.node import RsvoNode
-from rsvo_ros.ros.params import DEFAULTS_FILE, PARAMETERS, _yaml_value, defaults_yaml
+from rsvo_ros.ros.params import (
+    DEFAULTS_FILE,
+    PARAMETERS,
+    _yaml_value,
+    defaults_yaml,
+    params_yaml,
+)
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 
 pytestmark = pytest.mark.ros
@@ -513,6 +519,22 @@ def test_the_shipped_parameter_file_is_every_default_and_loads(tmp_path):
     try:
         assert node.p["model"] == "gs" and node.p["max_features"] == 300
         assert node.p["line_delay"] == pytest.approx(5e-5)
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+
+
+def test_a_line_delay_file_of_a_global_shutter_loads(tmp_path):
+    """rsvo_calibrate's file for an estimate of exactly 0 (a global shutter) is a float
+    parameter the node takes (written as "0" it was an integer, which the node refuses)."""
+    estimate = {"status": "converged", "windows": 6, "frames": 150, "line_delay_s": 0.0,
+                "std_s": 1e-7, "readout_s": 0.0, "readout_fraction": 0.0,
+                "std_fraction": 0.002}  # fmt: skip
+    path = tmp_path / "calib.yaml"
+    path.write_text(params_yaml(estimate, "test"))
+    ctx, node = _node_with_params_file(path, 3)
+    try:
+        assert node.p["line_delay"] == 0.0 and node.p["line_delay_mode"] == "fixed"
     finally:
         node.destroy_node()
         ctx.try_shutdown()
