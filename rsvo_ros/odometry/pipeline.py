@@ -38,6 +38,7 @@ from rsvo_ros.odometry.pairwise import (
 )
 from rsvo_ros.odometry.relocalize import describe
 from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
+from rsvo_ros.odometry.twist import Twist, TwistEstimator
 from rsvo_ros.odometry.window import (
     WindowOdometry,
     WindowOptions,
@@ -130,6 +131,10 @@ class FrameResult:
     # previous image + offset``, and tracked in the previous image's grey levels; None: it did
     # not change (or the frame was not tracked)
     brightness_change: tuple[float, float] | None = None
+    # the velocity since the last posed frame of the trajectory, in this frame's camera frame
+    # (odometry/twist.py: nav_msgs/Odometry's twist); unknown (infinite covariance) where there
+    # is none
+    twist: Twist = field(default_factory=Twist)
 
     @property
     def has_pose(self) -> bool:
@@ -218,9 +223,18 @@ class OdometryPipeline:
         # T_odom_world at the last frame posed in a trusted map (WindowOdometry.in_trusted_map):
         # a frame that re-finds the map is posed in that map's world, and is published with it
         self._T_odom_trusted: np.ndarray | None = None
+        self.twist = TwistEstimator()
 
     def process(self, stamp_ns: int, gray: np.ndarray) -> FrameResult:
         """One new frame (uint8 gray). Never raises for bad data: returns a skipped result."""
+        res = self._process(stamp_ns, gray)
+        if res.status != "skipped":  # a skipped frame leaves the trajectory as it was
+            continuous = (res.status == "posed" and res.tracking == "tracking"
+                          and not res.refound and not res.time_reset)  # fmt: skip
+            res.twist = self.twist.update(stamp_ns, res.T_world_cam, continuous)
+        return res
+
+    def _process(self, stamp_ns: int, gray: np.ndarray) -> FrameResult:
         t0 = time.perf_counter()
         idx = self._index
         self._index += 1
@@ -241,7 +255,7 @@ class OdometryPipeline:
         if jump == "reset":
             back = (self._last_stamp - stamp_ns) * 1e-9
             self.reset()  # as a new pipeline: frame indices (and RANSAC seeds) start over
-            res = self.process(stamp_ns, gray)
+            res = self._process(stamp_ns, gray)
             res.time_reset = True
             res.reason = f"time jumped back {back:.3f} s: odometry reset, a new trajectory " \
                          f"starts here ({res.reason})"

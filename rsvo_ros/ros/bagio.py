@@ -129,8 +129,10 @@ def pose_of(pose_msg_) -> tuple[np.ndarray, np.ndarray]:
 
 def odometry_msg(stamp_ns: int, R: np.ndarray, p: np.ndarray, frame_id: str, child_frame_id: str,
                  linear: np.ndarray | None = None, angular: np.ndarray | None = None,
-                 pose_covariance: np.ndarray | None = None):  # fmt: skip
-    """nav_msgs/Odometry; ``linear``/``angular`` (twist, child frame) zero if None."""
+                 pose_covariance: np.ndarray | None = None,
+                 twist_covariance: np.ndarray | None = None):  # fmt: skip
+    """nav_msgs/Odometry; ``linear``/``angular`` (twist, child frame) zero if None; the
+    covariances (36,) or (6, 6), zero if None."""
     vec = _t("geometry_msgs/msg/Vector3")
     lin = np.zeros(3) if linear is None else linear
     ang = np.zeros(3) if angular is None else angular
@@ -143,7 +145,9 @@ def odometry_msg(stamp_ns: int, R: np.ndarray, p: np.ndarray, frame_id: str, chi
         header=header(stamp_ns, frame_id), child_frame_id=child_frame_id,
         pose=_t("geometry_msgs/msg/PoseWithCovariance")(pose=pose_msg(R, p),
                                                          covariance=cov.reshape(-1)),
-        twist=_t("geometry_msgs/msg/TwistWithCovariance")(twist=twist, covariance=np.zeros(36)),
+        twist=_t("geometry_msgs/msg/TwistWithCovariance")(
+            twist=twist, covariance=np.zeros(36) if twist_covariance is None
+            else np.asarray(twist_covariance, float).reshape(-1)),
     )  # fmt: skip
 
 

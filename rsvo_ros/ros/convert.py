@@ -172,6 +172,12 @@ def covariance_for_msg(cov: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(cov), cov, COVARIANCE_UNKNOWN).ravel()
 
 
+def fill_twist(twist, linear: np.ndarray, angular: np.ndarray) -> None:
+    """Write ``linear``, ``angular`` (3,) into a geometry_msgs/Twist."""
+    twist.linear.x, twist.linear.y, twist.linear.z = (float(v) for v in linear)
+    twist.angular.x, twist.angular.y, twist.angular.z = (float(v) for v in angular)
+
+
 def fill_transform(transform, T: np.ndarray) -> None:
     """Write ``T`` into a geometry_msgs/Transform (translation, rotation)."""
     p, q = pose_components(T)

@@ -34,6 +34,7 @@ from rsvo_ros.core.geometry import pose_inverse
 from rsvo_ros.odometry.pairwise import uncertain_rotation_or_auto
 from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions, warm_up
 from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
+from rsvo_ros.odometry.twist import twist_in_frame
 from rsvo_ros.ros.convert import (
     COVARIANCE_UNKNOWN,
     POINT_FIELD_FLOAT32,
@@ -43,6 +44,7 @@ from rsvo_ros.ros.convert import (
     covariance_for_msg,
     fill_pose,
     fill_transform,
+    fill_twist,
     image_to_gray,
     stamp_ns,
     xyz_cloud_data,
@@ -367,6 +369,11 @@ class RsvoNode(Node):
         fill_pose(odom.pose.pose, T)
         cov = np.eye(6) * COVARIANCE_UNKNOWN if lost else res.covariance
         odom.pose.covariance = [float(x) for x in covariance_for_msg(cov)]
+        twist = res.twist  # the camera's since the last pose; unknown (1e6) where there is none
+        if self.p["base_frame"]:
+            twist = twist_in_frame(twist, self.T_base_cam)
+        fill_twist(odom.twist.twist, twist.linear, twist.angular)
+        odom.twist.covariance = [float(x) for x in covariance_for_msg(twist.covariance)]
         self.pub_odom.publish(odom)
         if self.pub_tf is not None:
             tf = TransformStamped()

@@ -43,6 +43,7 @@ from rsvo_ros.odometry.tracker import (
     MAX_REFINE_WINDOW_PX,
     refine_window_or_auto,
 )
+from rsvo_ros.odometry.twist import Twist, body_twist
 from rsvo_ros.odometry.window import WindowOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.camera_file import load_camera_file
@@ -110,9 +111,11 @@ def _pose_line(stamp: int, T: np.ndarray) -> str:
 
 
 def _odometry(res: FrameResult):
-    T = res.T_world_cam
+    T, tw = res.T_world_cam, res.twist
     return bagio.odometry_msg(res.stamp_ns, T[:3, :3], T[:3, 3], ODOM_FRAME, bagio.CAMERA_FRAME,
-                              pose_covariance=covariance_for_msg(res.covariance))  # fmt: skip
+                              linear=tw.linear, angular=tw.angular,
+                              pose_covariance=covariance_for_msg(res.covariance),
+                              twist_covariance=covariance_for_msg(tw.covariance))  # fmt: skip
 
 
 class PathMessages:
@@ -272,6 +275,7 @@ def replay(cfg: ReplayConfig) -> dict:
     gt: dict[int, np.ndarray] = {}
     gt_w: dict[int, np.ndarray] = {}  # the ground truth's angular velocity (row-0 frame)
     est: dict[int, np.ndarray] = {}  # the current trajectory (a time reset starts another)
+    twists: dict[int, Twist] = {}  # each posed frame's odometry twist
     trajectories: list[dict[int, np.ndarray]] = [est]
     time_resets = 0
     refound = 0  # frames where the window re-found a lost map by its descriptors
@@ -412,6 +416,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     trajectories.append(est)
                     poses.clear()
                 est[stamp] = res.T_world_cam
+                twists[stamp] = res.twist
                 tum.write(_pose_line(stamp, res.T_world_cam) + "\n")
                 writer.write(c_odom, stamp, bagio.serialize(_odometry(res)))
                 writer.write(c_tf, stamp, bagio.serialize(_tf(res)))
@@ -520,6 +525,8 @@ def replay(cfg: ReplayConfig) -> dict:
         for t, row in zip(trajectories, summary["trajectories"], strict=True):
             if len(t) >= 3 and sum(s in gt for s in t) >= 3:
                 row["ate_m_rmse"] = accuracy(gt, t)["ate_m"]["rmse"]
+    summary["twist"] = twist_summary(twists, gt_w, gt,
+                                     summary.get("accuracy", {}).get("sim3_scale"))
     if pipeline is not None and options.backend == "window":
         summary["keyframes"] = keyframe_summary(pipeline.window.keyframe_log, gt_w,
                                                 pipeline.window.row0_time())
@@ -677,6 +684,54 @@ def keyframe_summary(log: dict, gt_w: dict[int, np.ndarray], row0_time: float = 
     if rel:
         out["w_rel_error_median"] = float(np.median(rel))
         out["w_compared"] = len(rel)
+    return out
+
+
+def twist_summary(twists: dict[int, Twist], gt_w: dict[int, np.ndarray],
+                  gt: dict[int, np.ndarray] | None = None, scale: float | None = None) -> dict:
+    """How many frames' odometry carried a twist (``known``: a finite covariance), and its
+    errors where the bag has ground truth. Against the true mean over the same interval (the
+    ground truth's poses at both stamps, ``gt``): angular (deg/s, median) and, with the
+    trajectory's Sim(3) ``scale``, linear (relative to the median true speed); this is what
+    the twist estimates. Against the instantaneous row-0 angular velocity (``gt_w``, the
+    synthetic bags' twist): what a filter taking it as the rate at the stamp sees (shake faster
+    than the frame rate makes the two differ). ``angular_within_2_sigma``: the share of angular
+    components within two standard deviations of the published covariance, against the
+    interval's truth where there is one (about 95 % where the covariance is honest and the
+    errors Gaussian)."""
+    known = {s: t for s, t in twists.items() if t.known}
+    out = {"frames": len(twists), "known": len(known)}
+    gt = gt or {}
+    matched = [(s, t) for s, t in sorted(known.items()) if s in gt and t.since_ns in gt]
+    sigma_err = None
+    if matched:
+        truth = [body_twist(gt[t.since_ns], gt[s], (s - t.since_ns) * 1e-9) + (t,)
+                 for s, t in matched]  # (true linear, true angular, published)
+        err_w = np.array([t.angular - w for _, w, t in truth])
+        out["interval_compared"] = len(matched)
+        out["angular_error_vs_interval_deg_s_median"] = float(
+            np.degrees(np.median(np.linalg.norm(err_w, axis=1))))
+        out["angular_interval_deg_s_median"] = float(
+            np.degrees(np.median([np.linalg.norm(w) for _, w, _ in truth])))
+        sigma_err = (err_w, np.array([t.covariance.diagonal()[3:] for _, _, t in truth]))
+        speed = np.median([np.linalg.norm(v) for v, _, _ in truth])
+        if scale is not None and np.isfinite(scale) and speed > 0:
+            err_v = [np.linalg.norm(scale * t.linear - v) for v, _, t in truth]
+            out["linear_rel_error_vs_interval_median"] = float(np.median(err_v) / speed)
+    inst = [(t, gt_w[s]) for s, t in sorted(known.items()) if s in gt_w]
+    if inst:
+        err = np.array([t.angular - w for t, w in inst])
+        true = np.median([np.linalg.norm(w) for _, w in inst])
+        med = float(np.median(np.linalg.norm(err, axis=1)))
+        out["angular_compared"] = len(inst)
+        out["angular_error_deg_s_median"] = float(np.degrees(med))
+        out["angular_true_deg_s_median"] = float(np.degrees(true))
+        out["angular_rel_error_median"] = med / true if true > 0 else float("nan")
+        if sigma_err is None:
+            sigma_err = (err, np.array([t.covariance.diagonal()[3:] for t, _ in inst]))
+    if sigma_err is not None:
+        out["angular_within_2_sigma"] = float(np.mean(np.abs(sigma_err[0])
+                                                      <= 2.0 * np.sqrt(sigma_err[1])))
     return out
 
 

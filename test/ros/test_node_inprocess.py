@@ -170,6 +170,40 @@ def test_base_frame_odometry_uses_the_fixed_transform(ros_context):
         h.close()
 
 
+def test_odometry_twist_is_the_base_frames_motion_with_a_measured_covariance(ros_context):
+    """The twist of /rsvo/odom: unknown (1e6) for the first pose, then the base frame's
+    velocity (lever arm included), which the published base poses' differences agree with."""
+    q = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_quat()  # optical -> base
+    h = Harness(ros_context, [Parameter("base_frame", value="base_link"),
+                              Parameter("base_to_camera", value=[3.0, 2.0, 1.0, *q])])
+    try:
+        info, msgs = _frames(12)
+        h.feed(info, msgs)
+        assert len(h.odom) == 12
+        covs = [np.reshape(o.twist.covariance, (6, 6)).diagonal() for o in h.odom]
+        assert np.allclose(covs[0], 1e6)
+        known = [i for i, c in enumerate(covs) if c.max() < 1e3]
+        assert len(known) >= 4 and known[0] >= 2
+
+        def pose(o):
+            p, r = o.pose.pose.position, o.pose.pose.orientation
+            return np.array([p.x, p.y, p.z]), Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix()
+
+        for i in known:
+            (p0, R0), (p1, R1) = pose(h.odom[i - 1]), pose(h.odom[i])
+            dt = (_stamp(h.odom[i]) - _stamp(h.odom[i - 1])) * 1e-9
+            tw = h.odom[i].twist.twist
+            ang = np.array([tw.angular.x, tw.angular.y, tw.angular.z])
+            lin = np.array([tw.linear.x, tw.linear.y, tw.linear.z])
+            ang_diff = Rotation.from_matrix(R0.T @ R1).as_rotvec() / dt
+            lin_diff = R1.T @ (p1 - p0) / dt
+            assert np.allclose(ang, ang_diff, atol=1e-3 + 0.02 * np.linalg.norm(ang_diff))
+            assert np.allclose(lin, lin_diff, atol=0.05 * np.linalg.norm(lin_diff))
+            assert lin[0] > abs(lin[1]) and lin[0] > abs(lin[2])  # driving forward: base x
+    finally:
+        h.close()
+
+
 def test_path_publish_period_bounds_the_path_messages(ros_context):
     """Every frame has its odometry; the path goes out at most once per period (the first
     frame's here), and holds every pose so far."""

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader
+from scipy.spatial.transform import Rotation
 
 from rsvo_ros.odometry.pairwise import (
     BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
@@ -99,6 +100,26 @@ def test_replay_writes_every_output(vehicle_bag, tmp_path, model, extra, capsys)
     if summary["backend"] == "window":
         assert cloud.width >= 20
         assert (out / "keyframes.tum").read_text().count("\n") == summary["keyframes"]["count"]
+    # the odometry's twist: none for the first pose (covariance 1e6), then the motion since the
+    # last pose in the camera frame, with a measured covariance once there are enough of them
+    with Reader(out / "odometry") as r:
+        conns = [c for c in r.connections if c.topic == "/rsvo/odom"]
+        odoms = [bagio.deserialize(raw, c.msgtype) for c, _t, raw in r.messages(connections=conns)]
+    covs = np.array([np.reshape(o.twist.covariance, (6, 6)) for o in odoms])
+    known = [i for i in range(len(odoms)) if covs[i].diagonal().max() < 1e3]
+    assert np.allclose(covs[0].diagonal(), 1e6)
+    assert summary["twist"]["known"] == len(known) and (not known or known[0] >= 2)
+    for i in known:
+        ang = odoms[i].twist.twist.angular
+        dt = vals[i, 0] - vals[i - 1, 0]
+        R0, R1 = (Rotation.from_quat(vals[j, 4:]).as_matrix() for j in (i - 1, i))
+        assert np.allclose([ang.x, ang.y, ang.z], Rotation.from_matrix(R0.T @ R1).as_rotvec() / dt,
+                           atol=1e-6)
+        lin = odoms[i].twist.twist.linear
+        assert np.allclose([lin.x, lin.y, lin.z], R1.T @ (vals[i, 1:4] - vals[i - 1, 1:4]) / dt,
+                           atol=1e-6)
+    assert summary["twist"].get("angular_compared", 0) == len(known)
+    assert summary["twist"].get("interval_compared", 0) == len(known)
     acc = summary["accuracy"]
     assert acc["matched_poses"] == summary["frames_posed"]
     assert np.isfinite(acc["ate_m"]["rmse"]) and acc["ate_m"]["rmse"] < 1.0
@@ -141,6 +162,25 @@ def _write_bad_bag(path: Path) -> int:
                     bagio.image_msg(stamp + 1000 * 10**9, frames[6].image)))
                 n += 1
     return n
+
+
+def test_the_odometry_twist_follows_the_true_turn_rate(tmp_path):
+    """A smooth drive: after its first frames every odometry message carries a twist with a
+    measured covariance, and the published turn rate is near the truth."""
+    bag = tmp_path / "drive"
+    write_bag(bag, SynthConfig(frames=24, motion="vehicle", severity=0.3, width=320,
+                               height=180, seed=4), "sqlite3", progress=False)  # fmt: skip
+    out = tmp_path / "out"
+    assert replay_main([str(bag), "--output", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    tw = summary["twist"]
+    assert tw["frames"] == summary["frames_posed"] == 24
+    assert tw["known"] >= 12 and tw["angular_compared"] == tw["interval_compared"] == tw["known"]
+    # against the true motion over the same intervals, and the true rate at the stamps
+    assert tw["angular_error_vs_interval_deg_s_median"] < 0.2 * tw["angular_interval_deg_s_median"]
+    assert tw["linear_rel_error_vs_interval_median"] < 0.2  # after the Sim(3) scale
+    assert tw["angular_error_deg_s_median"] < 0.5 * tw["angular_true_deg_s_median"]
+    assert tw["angular_within_2_sigma"] > 0.8
 
 
 def test_bad_messages_are_counted_and_the_rest_is_processed(tmp_path):
