@@ -121,6 +121,9 @@ class CameraIntrinsics:
     lens: LensModel | None
     width: int
     height: int
+    # sensor rows per image row (CameraInfo's binning_y; 1 without binning): the line delay is
+    # per image row, so a binned camera's is this many times the sensor's row time
+    binning_y: int = 1
 
 
 def _info_field(msg, name: str):
@@ -149,7 +152,34 @@ def camera_from_info(msg, rectified: bool = False) -> CameraIntrinsics:
                          "focal length)")
     lens = None if rectified else LensModel.create(str(msg.distortion_model),
                                                    np.asarray(_info_field(msg, "d"), float))
-    return CameraIntrinsics(K, lens, int(msg.width), int(msg.height))
+    K, width, height, binning_y = _binned_roi(msg, K)
+    return CameraIntrinsics(K, lens, width, height, binning_y)
+
+
+def _binned_roi(msg, K: np.ndarray) -> tuple[np.ndarray, int, int, int]:
+    """REP 104: CameraInfo's K, P, width and height are the full-resolution calibration's; the
+    images are its region of interest (``roi``; all zero: the whole image) binned by
+    ``binning_x`` x ``binning_y`` (0 or 1: none). The intrinsics of the images as they come:
+    ``fx / bx``, ``(cx - x_offset) / bx`` (and in y), which keep every pixel's normalised
+    coordinates, so the lens (defined on those) stays as it is; and the images' size.
+    Raises ValueError for a region outside the calibrated image."""
+    bx, by = (max(int(getattr(msg, f"binning_{a}", 0) or 0), 1) for a in "xy")
+    roi = getattr(msg, "roi", None)
+    x0, y0, rw, rh = (0, 0, 0, 0) if roi is None else (
+        int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height))
+    width, height = int(msg.width), int(msg.height)
+    if rw == 0 and rh == 0:  # the whole image (REP 104)
+        x0 = y0 = 0
+        rw, rh = width, height
+    elif width and height and (x0 + rw > width or y0 + rh > height or rw <= 0 or rh <= 0):
+        raise ValueError(f"camera info with a region of interest outside the image ({rw}x{rh} "
+                         f"at {x0},{y0} in {width}x{height})")
+    if bx == 1 and by == 1 and (x0, y0) == (0, 0) and (rw, rh) == (width, height):
+        return K, width, height, 1
+    K = K.copy()
+    K[0, 0], K[0, 1], K[0, 2] = K[0, 0] / bx, K[0, 1] / bx, (K[0, 2] - x0) / bx
+    K[1, 1], K[1, 2] = K[1, 1] / by, (K[1, 2] - y0) / by
+    return K, rw // bx, rh // by, by
 
 
 def pose_components(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -201,6 +201,11 @@ class RsvoNode(Node):
         except ValueError as exc:
             self._bad(str(exc))
             return
+        if cam.binning_y > 1 and self._camera is None:
+            self.get_logger().info(
+                f"camera info: binning {cam.binning_y} rows, images {cam.width}x{cam.height} "
+                f"(intrinsics scaled as REP 104 says); line_delay is per image row, "
+                f"{cam.binning_y} x the sensor's row time")
         self._camera = (cam.K, cam.lens, cam.width, cam.height)
         if self.pipeline is None:  # build it now, not on the first image (keeps that one fast)
             with self._pipeline_lock:

@@ -301,6 +301,10 @@ def replay(cfg: ReplayConfig) -> dict:
             break
         except Exception:  # noqa: BLE001 - a bad one is skipped, the next one may do
             continue
+    if camera is not None and camera.binning_y > 1:
+        print(f"rsvo_replay: camera info with binning {camera.binning_y} rows: images "
+              f"{camera.width}x{camera.height}, intrinsics scaled (REP 104); the line delay is "
+              f"per image row, {camera.binning_y} x the sensor's row time", flush=True)
     video = None if cfg.debug_video is None else DebugVideo(cfg.debug_video)
     writer = bagio.open_writer(odom_bag, "sqlite3")
     ts = bagio.typestore()

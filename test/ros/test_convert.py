@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from rsvo_ros.core.lens import undistort_points
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import (
     camera_from_info,
@@ -149,6 +150,43 @@ def test_camera_from_info_of_rectified_images_takes_p_and_no_lens():
     info.p = [0.0] * 12  # a CameraInfo without P cannot describe rectified images
     with pytest.raises(ValueError, match="invalid P"):
         camera_from_info(info, rectified=True)
+
+
+def _roi(x=0, y=0, w=0, h=0):
+    return SimpleNamespace(x_offset=x, y_offset=y, width=w, height=h)
+
+
+@pytest.mark.parametrize("bx, by, roi", [(2, 2, _roi()), (1, 1, _roi(100, 40, 400, 200)),
+                                         (2, 4, _roi(64, 32, 512, 256)), (0, 0, _roi())])
+def test_binning_and_roi_give_the_intrinsics_of_the_images_as_they_come(bx, by, roi):
+    """REP 104: K, D, width and height are the full-resolution calibration's; an image pixel of
+    the binned region is the full-resolution pixel ``(u bx + x_offset, v by + y_offset)``, so
+    its normalised (undistorted) coordinates must come out the same either way."""
+    K = np.array([[800.0, 0.5, 330.0], [0, 790.0, 190.0], [0, 0, 1]])
+    d = [-0.2, 0.05, 0.001, -0.002, 0.0]
+    info = _info(K.ravel(), d, width=640, height=360)
+    info.binning_x, info.binning_y, info.roi = bx, by, roi
+    cam = camera_from_info(info)
+    full = camera_from_info(_info(K.ravel(), d, width=640, height=360))
+    bx, by = max(bx, 1), max(by, 1)
+    rw, rh = (roi.width, roi.height) if roi.width else (640, 360)
+    assert (cam.width, cam.height) == (rw // bx, rh // by) and cam.binning_y == by
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([0, 0], [cam.width, cam.height], (50, 2))
+    uv_full = uv * [bx, by] + [roi.x_offset, roi.y_offset]
+
+    def normalised(c, px):
+        und = undistort_points(px, c.K, c.lens)
+        return np.column_stack([und, np.ones(len(und))]) @ np.linalg.inv(c.K).T
+
+    assert np.allclose(normalised(cam, uv), normalised(full, uv_full), atol=1e-9)
+
+
+def test_a_region_of_interest_outside_the_image_is_refused():
+    info = _info([800.0, 0, 320, 0, 800.0, 180, 0, 0, 1], width=640, height=360)
+    info.roi = _roi(400, 0, 300, 100)
+    with pytest.raises(ValueError, match="region of interest outside the image"):
+        camera_from_info(info)
 
 
 @pytest.mark.parametrize("k, d, model, message", [

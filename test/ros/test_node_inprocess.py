@@ -204,6 +204,28 @@ def test_odometry_twist_is_the_base_frames_motion_with_a_measured_covariance(ros
         h.close()
 
 
+def test_a_binned_cameras_full_resolution_info_gives_the_same_odometry(ros_context):
+    """REP 104: a camera that bins 2 x 2 publishes the full-resolution calibration with
+    binning_x/y = 2; its half-size images were refused as 'image size differs from camera
+    info'. They now get the intrinsics scaled, and the same odometry as a plain camera info."""
+    info, msgs = _frames(6)
+    binned = CameraInfo()
+    binned.k = [float(x) for x in (np.reshape(info.k, (3, 3)) * [[2], [2], [1]]).ravel()]
+    binned.width, binned.height = 2 * info.width, 2 * info.height
+    binned.binning_x = binned.binning_y = 2
+    poses = []
+    for camera_info in (info, binned):
+        h = Harness(ros_context, [Parameter("model", value="gs")])
+        try:
+            h.feed(camera_info, msgs)
+            assert h.node.stats["bad"] == 0 and len(h.odom) == 6
+            poses.append([(o.pose.pose.position.x, o.pose.pose.position.y,
+                           o.pose.pose.position.z) for o in h.odom])
+        finally:
+            h.close()
+    assert np.array_equal(poses[0], poses[1])
+
+
 def test_path_publish_period_bounds_the_path_messages(ros_context):
     """Every frame has its odometry; the path goes out at most once per period (the first
     frame's here), and holds every pose so far."""

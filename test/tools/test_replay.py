@@ -484,6 +484,34 @@ def test_rectified_images_take_the_projection_and_no_lens(vehicle_bag, tmp_path)
     assert runs["raw"] != runs["original"]  # K and the lens were applied to rectified images
 
 
+def test_a_binned_cameras_bag_replays_as_its_plain_original(vehicle_bag, tmp_path, capsys):
+    """REP 104: a camera info of the full-resolution calibration with binning 2 x 2 and a
+    region of interest describes the bag's images (they were all skipped as 'image size
+    differs from camera info')."""
+    def binned(c, raw, reader):
+        if c.topic == bagio.CAMERA_INFO_TOPIC:
+            msg = reader.deserialize(raw, c.msgtype)
+            K = np.array(msg.k).reshape(3, 3)
+            msg.k = (K * [[2, 1, 2], [1, 2, 2], [1, 1, 1]] + [[0, 0, 40], [0, 0, 20], [0, 0, 0]]
+                     ).ravel()  # full resolution, the region 40, 20 px from its corner
+            msg.roi.x_offset, msg.roi.y_offset = 40, 20
+            msg.roi.width, msg.roi.height = 2 * msg.width, 2 * msg.height
+            msg.width, msg.height = 2 * msg.width + 100, 2 * msg.height + 50
+            msg.binning_x = msg.binning_y = 2
+            raw = bagio.serialize(msg)
+        return [(c.topic, c.msgtype, raw)]
+
+    bag = tmp_path / "binned"
+    _rewrite_bag(vehicle_bag, bag, binned)
+    runs = {}
+    for name, b in (("original", vehicle_bag), ("binned", bag)):
+        out = tmp_path / name
+        assert replay_main([str(b), "--output", str(out), "--no-progress"]) == 0
+        runs[name] = (out / "trajectory.tum").read_text()
+    assert runs["binned"] == runs["original"]
+    assert "binning 2 rows" in capsys.readouterr().out
+
+
 def test_the_image_topics_own_camera_info_is_found_beside_it(vehicle_bag, tmp_path, capsys):
     """Two cameras (/cam0, /cam1), no /camera/camera_info: --image-topic /cam1/image_raw (or
     its compressed topic) takes /cam1/camera_info, not the other camera's."""
