@@ -249,7 +249,7 @@ class PairwiseChain:
                 pts_prev, pts_curr, self.K, self.line_delay, model=self.model,
                 seed=self.seed + idx, mode=self.mode,
                 ransac=self.ransac, lm=self.lm,
-                rows_prev=pair.pts_prev[:, 1], rows_curr=pair.pts_curr[:, 1],
+                rows_prev=pair.rows_prev, rows_curr=pair.rows_curr,
                 frame_interval=interval if moving else None,
                 predicted=self._predicted_motion(interval) if moving else None,
             )  # fmt: skip
@@ -405,8 +405,8 @@ class PairwiseChain:
             return None
         f, c = np.array([self.K[0, 0], self.K[1, 1]]), self.K[:2, 2]
         xa, xb = (pts_prev[inl] - c) / f, (pts_curr[inl] - c) / f
-        sa = (pair.pts_prev[inl, 1] - row_mid) * tau
-        sb = (pair.pts_curr[inl, 1] - row_mid) * tau
+        sa = (pair.rows_prev[inl] - row_mid) * tau
+        sb = (pair.rows_curr[inl] - row_mid) * tau
         first = FrameState(0, np.eye(3), np.zeros(3), w_p, np.zeros(3))
         robust = 1.5 * focal / 1000.0
         fit = fit_rotation(first, xa, sa, xb, sb, R_m.T, w_c, focal, robust)

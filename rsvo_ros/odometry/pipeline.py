@@ -24,6 +24,7 @@ import numpy as np
 
 from rsvo_ros.core.geometry import rigid_correction
 from rsvo_ros.core.lens import LensModel, as_lens, undistort_points
+from rsvo_ros.core.readout import check_readout, sensor_line_count, sensor_rows
 from rsvo_ros.odometry.frame import FrameState, Observations
 from rsvo_ros.odometry.line_delay import (
     LineDelayCalibrator,
@@ -96,6 +97,11 @@ class PipelineOptions:
     line_delay_auto: bool = False
     line_delay_calibration: LineDelayOptions = field(default_factory=LineDelayOptions)
     auto_initial_readout: float = 0.5
+    # which way the rolling shutter reads the images as they arrive (core/readout.py): "down"
+    # (rows top to bottom, CONTRACTS.md), "up" (an image turned by 180 degrees: a camera
+    # mounted upside down), "right" / "left" (columns: an image turned by 90 degrees, a phone
+    # in portrait); line_delay is then per line read (a column for right / left)
+    readout: str = "down"
 
 
 @dataclass
@@ -151,6 +157,8 @@ class OdometryPipeline:
         self.options = options or PipelineOptions()
         if self.options.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.options.backend!r}")
+        check_readout(self.options.readout)
+        self._image_size: tuple[int, int] | None = None  # (width, height) of the last image
         self.set_camera(K, D, line_delay)
         tracker = self.options.tracker
         if tracker.refine_window_px is None and self.options.backend == "pairwise":
@@ -182,9 +190,10 @@ class OdometryPipeline:
             if self.options.line_delay_auto and self.options.model == "rs":
                 self.line_delay_estimate = LineDelayEstimate(
                     "collecting", reason="no keyframe windows yet")
-                if self.line_delay <= 0:  # the image height is about twice the centre row
+                if self.line_delay <= 0:  # the lines read are about twice the centre's
+                    centre = K[0, 2] if self.options.readout in ("right", "left") else K[1, 2]
                     self.line_delay = self.options.auto_initial_readout / 30.0 \
-                        / max(2.0 * float(K[1, 2]), 1.0)
+                        / max(2.0 * float(centre), 1.0)
         if changed:
             self.reset()  # the backends hold the camera: a new camera starts a new trajectory
 
@@ -265,9 +274,14 @@ class OdometryPipeline:
         prev_stamp, self._last_stamp = self._last_stamp, stamp_ns
         if prev_stamp is not None:
             self._intervals = (self._intervals + [stamp_ns - prev_stamp])[-15:]
-        self._calibrate(stamp_ns, gray.shape[0])
+        height, width = gray.shape
+        self._image_size = (width, height)
+        self._calibrate(stamp_ns, sensor_line_count(self.options.readout, width, height))
         pair = self.tracker.track(gray, stamp_ns)
         tracked = True
+        if self.options.readout != "down":
+            pair.sensor_rows_prev = self._rows(pair.pts_prev)
+            pair.sensor_rows_curr = self._rows(pair.pts_curr)
         if self.options.backend == "window":
             interval = None if prev_stamp is None else (stamp_ns - prev_stamp) * 1e-9
             return self._process_window(stamp_ns, gray, pair, interval, idx, result)
@@ -393,13 +407,20 @@ class OdometryPipeline:
             return []
         return [(stamp, self.T_odom_world @ T) for stamp, T in self.window.keyframe_poses(last)]
 
+    def _rows(self, raw: np.ndarray) -> np.ndarray:
+        """(N,) the RS timing rows of raw pixels ``raw`` (N, 2) of the last image."""
+        if self.options.readout == "down" or self._image_size is None:
+            return np.asarray(raw, float)[:, 1]
+        return sensor_rows(raw, self.options.readout, *self._image_size)
+
     def observations(self, gray: np.ndarray | None = None) -> Observations:
         """Every feature of the last image as the window backend takes them (with ``gray``,
         the image, their ORB descriptors on demand: ``Observations.describe``)."""
         ids, raw = self.tracker.current()
         px = undistort_points(raw, self.K, self.D)
         x = (px - self.K[:2, 2]) / np.array([self.K[0, 0], self.K[1, 1]])
-        obs = Observations(ids, x, self.window.row_time(raw[:, 1]), px, raw[:, 1])
+        rows = self._rows(raw)
+        obs = Observations(ids, x, self.window.row_time(rows), px, rows)
         if gray is not None:
             obs.describe = functools.cache(functools.partial(describe, gray, raw))
         return obs

@@ -94,6 +94,19 @@ class TrackedPair:
     pts_prev: np.ndarray  # (N, 2)
     pts_curr: np.ndarray  # (N, 2)
     ids: np.ndarray  # (N,) int track ids
+    # (N,) each point's sensor row where the readout is not the image's rows top to bottom
+    # (core/readout.py); None: the pixels' rows
+    sensor_rows_prev: np.ndarray | None = None
+    sensor_rows_curr: np.ndarray | None = None
+
+    @property
+    def rows_prev(self) -> np.ndarray:
+        """(N,) the RS timing rows of ``pts_prev``."""
+        return self.pts_prev[:, 1] if self.sensor_rows_prev is None else self.sensor_rows_prev
+
+    @property
+    def rows_curr(self) -> np.ndarray:
+        return self.pts_curr[:, 1] if self.sensor_rows_curr is None else self.sensor_rows_curr
 
 
 class FeatureTracker:

@@ -252,6 +252,7 @@ class RsvoNode(Node):
             return
         K, D, _, _ = self._camera
         opts = PipelineOptions(model=self.p["model"], backend=self.p["backend"],
+                               readout=self.p["readout_direction"],
                                tracker=TrackerOptions(
                                    max_features=int(self.p["max_features"]),
                                    refine_window_px=refine_window_or_auto(
@@ -508,7 +509,8 @@ class RsvoNode(Node):
             return
         target = FilePath(path).expanduser()
         text = params_yaml(e.as_dict(), f"rsvo_node line_delay_mode auto ({e.status})",
-                           mode="auto", node_name=self.get_name())
+                           mode="auto", node_name=self.get_name(),
+                           readout_direction=self.p["readout_direction"])
         try:
             tmp = target.with_name(target.name + ".tmp")
             tmp.write_text(text)

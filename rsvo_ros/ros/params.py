@@ -20,6 +20,7 @@ from rcl_interfaces.msg import (
 )
 from scipy.spatial.transform import Rotation
 
+from rsvo_ros.core.readout import READOUTS, check_readout
 from rsvo_ros.odometry.local_map import ACCELERATION_STD_RAD_S2
 from rsvo_ros.odometry.pairwise import (
     BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
@@ -94,6 +95,11 @@ PARAMETERS = {
         "the next start with --params-file FILE begins from it instead of the nominal "
         "half-frame readout; '' (default): not written.")),
     "model": ("rs", _str("Relative pose model.", MODELS)),
+    "readout_direction": ("down", _str(
+        "Which way the rolling shutter reads the images as they arrive: down (rows top to "
+        "bottom), up (an image turned by 180 degrees: a camera mounted upside down and the "
+        "image turned the right way up), right / left (columns: an image turned by 90 degrees, "
+        "a phone filming in portrait); line_delay is then the time per line read.", READOUTS)),
     "backend": ("window", _str("Odometry backend: window (keyframes, a local map and the RS "
                                "window bundle adjustment) or pairwise (the paper's chain of "
                                "frame pairs).", BACKENDS)),
@@ -207,13 +213,17 @@ def _yaml_value(value) -> str:
 
 
 def params_yaml(estimate: dict, source: str, mode: str = "fixed",
-                node_name: str = "rsvo_node") -> str:
+                node_name: str = "rsvo_node", readout_direction: str = "down") -> str:
     """A ROS 2 parameter file for the node with a line delay estimate (a
     :class:`~rsvo_ros.odometry.line_delay.LineDelayEstimate` as a dict); ``mode``: the
     ``line_delay_mode`` it sets (fixed: use the value; auto: start from it and go on
-    estimating)."""
+    estimating); ``readout_direction``: the one the estimate was made with (written where it
+    is not the default: the line delay is per line read in that direction)."""
     if mode not in LINE_DELAY_MODES:
         raise ValueError(f"mode must be one of {LINE_DELAY_MODES}, got {mode!r}")
+    check_readout(readout_direction)
+    direction = "" if readout_direction == "down" else \
+        f"    readout_direction: {_yaml_value(readout_direction)}\n"
     return (f"# {source}: {estimate['status']}, {estimate['windows']} windows, "
             f"{estimate['frames']} frames\n"
             f"# line delay {estimate['line_delay_s']:.6g} +- {estimate['std_s']:.3g} s/row; "
@@ -223,11 +233,12 @@ def params_yaml(estimate: dict, source: str, mode: str = "fixed",
             f"{node_name}:\n"
             "  ros__parameters:\n"
             f"    line_delay: {_yaml_value(float(format(estimate['line_delay_s'], '.6g')))}\n"
-            f"    line_delay_mode: {_yaml_value(mode)}\n")
+            f"    line_delay_mode: {_yaml_value(mode)}\n" + direction)
 
 
 # the string parameters that take one of a few values
 CHOICES = {"model": MODELS, "backend": BACKENDS, "image_qos_reliability": QOS_CHOICES,
+           "readout_direction": READOUTS,
            "image_transport": IMAGE_TRANSPORTS, "line_delay_mode": LINE_DELAY_MODES,
            "lost_odometry": LOST_CHOICES}
 

@@ -15,6 +15,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from rsvo_ros.core.readout import READOUTS
 from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.params import params_yaml
@@ -38,6 +39,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the Kalibr camchain's entry (default cam0)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="use only the first N images (default: all)")
+    p.add_argument("--readout-direction", choices=READOUTS, default="down",
+                   help="which way the rolling shutter reads the images as they are in the bag "
+                        "(rsvo_replay --readout-direction): down (default), up, right, left; "
+                        "the estimate is then per line read")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -50,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="rsvo_calibrate_") as tmp:
         cfg = ReplayConfig(args.bag, Path(tmp) / "replay", "rs", args.image_topic,
                            args.camera_info_topic, progress=not args.no_progress,
-                           options=PipelineOptions(line_delay_auto=True),
+                           options=PipelineOptions(line_delay_auto=True,
+                                                   readout=args.readout_direction),
                            max_frames=args.max_frames, camera_file=args.camera_file,
                            camera_entry=args.camera_entry)  # fmt: skip
         try:
@@ -72,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
           f"windows of {summary['frames_in']} frames")
     if e["bag_line_delay_s"] is not None:
         print(f"rsvo_calibrate: the bag records {e['bag_line_delay_s'] * 1e6:.2f} us/row")
-    args.output.write_text(params_yaml(e, f"rsvo_calibrate {args.bag}"))
+    args.output.write_text(params_yaml(e, f"rsvo_calibrate {args.bag}",
+                                       readout_direction=args.readout_direction))
     print(f"rsvo_calibrate: wrote {args.output} (rsvo_node --ros-args --params-file "
           f"{args.output})")
     return EXIT_OK

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from rsvo_ros.core.geometry import interpolate_poses
+from rsvo_ros.core.readout import READOUTS
 from rsvo_ros.odometry.local_map import ACCELERATION_STD_RAD_S2
 from rsvo_ros.odometry.pairwise import (
     BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
@@ -453,7 +454,7 @@ def replay(cfg: ReplayConfig) -> dict:
     est = max(trajectories, key=len) if trajectories else {}
     summary = {
         "bag": str(cfg.bag), "model": cfg.model, "backend": options.backend,
-        "motion_prior": options.motion_prior,
+        "motion_prior": options.motion_prior, "readout_direction": options.readout,
         "rotation_only_parallax_px": options.rotation_only_parallax_px,
         # the chain's uncertain-rotation limit in use (deg; 0: never)
         "uncertain_rotation_deg": (pipeline.chain.uncertain_rotation_deg
@@ -954,6 +955,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-features", type=int, default=500, help="tracked corners (500)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N",
                    help="stop after the first N images (default: the whole bag)")
+    p.add_argument("--readout-direction", choices=READOUTS, default="down",
+                   help="which way the rolling shutter reads the images as they are in the bag: "
+                        "down (rows top to bottom, default), up (an image turned by 180 "
+                        "degrees: a camera mounted upside down), right / left (columns: an "
+                        "image turned by 90 degrees, a phone in portrait); the line delay is "
+                        "then per line read")
     p.add_argument("--backend", choices=BACKENDS, default="window",
                    help="window: keyframes, a local map and the RS window bundle adjustment "
                         "(default); pairwise: the paper's chain of frame pairs")
@@ -1027,7 +1034,7 @@ def main(argv: list[str] | None = None) -> int:
         print("rsvo_replay: --two-pass needs --line-delay auto", file=sys.stderr)
         return EXIT_USAGE
     options = PipelineOptions(motion_prior=not args.no_motion_prior, backend=args.backend,
-                              line_delay_auto=auto)
+                              line_delay_auto=auto, readout=args.readout_direction)
     options.window.async_mapping = args.async_mapping
     options.window.map.prior_acc_rad_s2 = args.angular_acceleration
     options.rotation_only_parallax_px = args.rotation_only_parallax

@@ -596,6 +596,28 @@ def test_a_line_delay_file_of_a_global_shutter_loads(tmp_path):
         ctx.try_shutdown()
 
 
+def test_a_line_delay_file_of_a_turned_camera_sets_its_readout_direction(tmp_path):
+    """An estimate made with columns read (rsvo_calibrate --readout-direction right) is per
+    column: its file sets the direction too, and the node's pipeline takes it."""
+    estimate = {"status": "converged", "windows": 16, "frames": 150, "line_delay_s": 3e-5,
+                "std_s": 1e-6, "readout_s": 0.0192, "readout_fraction": 0.576,
+                "std_fraction": 0.02}  # fmt: skip
+    path = tmp_path / "calib.yaml"
+    path.write_text(params_yaml(estimate, "test", readout_direction="right"))
+    assert "readout_direction" not in params_yaml(estimate, "test")  # the default: not written
+    ctx, node = _node_with_params_file(path, 4)
+    try:
+        assert node.p["readout_direction"] == "right" and node.p["line_delay"] == 3e-5
+        info, msgs = _frames(2)
+        node._on_info(info)
+        assert node.pipeline.options.readout == "right"
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+    with pytest.raises(ValueError, match="readout must be one of"):
+        params_yaml(estimate, "test", readout_direction="sideways")
+
+
 @pytest.mark.parametrize("value,text", [(0.0, "0.0"), (5e-05, "5.0e-05"), (1e20, "1.0e+20"),
                                         (2.5, "2.5"), (3, "3"), (True, "true"),
                                         ("it's", "'it''s'"), ([0.0, 1.0], "[0.0, 1.0]")])

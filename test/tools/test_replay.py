@@ -764,6 +764,20 @@ def test_klt_refine_window_flag_reaches_the_tracker_and_is_checked(vehicle_bag, 
     _rejected(vehicle_bag, tmp_path, capsys, "--klt-refine-window", ("2", "99", "-3"))
 
 
+def test_readout_direction_flag_reaches_the_pipeline_and_is_checked(vehicle_bag, tmp_path,
+                                                                   capsys):
+    runs = {"default": [], "up": ["--readout-direction", "up"],
+            "right": ["--readout-direction", "right"]}
+    used = _summary_fields(vehicle_bag, tmp_path, runs, "readout_direction", 7)
+    assert used == {"default": "down", "up": "up", "right": "right"}
+    traj = {n: (tmp_path / n / "trajectory.tum").read_text() for n in runs}
+    assert traj["default"] != traj["up"] != traj["right"]  # the rows' times changed
+    with pytest.raises(SystemExit) as exc:  # argparse's choices
+        replay_main([str(vehicle_bag), "--output", str(tmp_path / "bad"), "--readout-direction",
+                     "sideways"])
+    assert exc.value.code == 2 and "--readout-direction" in capsys.readouterr().err
+
+
 def test_uncertain_rotation_flag_reaches_the_chain_and_is_checked(vehicle_bag, tmp_path, capsys):
     runs = {"default": [], "never": ["--uncertain-rotation", "0"],
             "pairwise": ["--backend", "pairwise"], "two": ["--uncertain-rotation", "2"]}
