@@ -65,6 +65,7 @@ except ImportError:  # pragma: no cover - depends on the install
     TFMessage = None
 
 QOS_WAIT_S = 10.0  # auto QoS: wait this long for a publisher, then subscribe best effort
+DEFAULT_CAMERA_FRAME = "camera_optical_frame"  # camera_frame '' and images without a frame_id
 # images larger than Fast DDS's default shared-memory segment that arrive this late (median of
 # 30 or more, ms) get a one-time hint at the shipped profile: 12-15 ms against 2-4 ms with it
 # for 1280x720 mono8 here (README, "Large images over DDS"); under a second, as a later median
@@ -133,6 +134,7 @@ class RsvoNode(Node):
         self._last_map_publish = -np.inf
         self._last_path_publish = -np.inf
         self.pub_tf = self.pub_tf_static = None
+        self._image_frame = ""  # camera_frame '': the first image's frame_id
         if self.p["publish_tf"]:
             if TFMessage is None:
                 self.get_logger().error("tf2_msgs is not installed: /tf is not published (run "
@@ -142,7 +144,8 @@ class RsvoNode(Node):
                 if self.p["base_frame"]:
                     self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static",
                                                                TF_STATIC_QOS)  # fmt: skip
-                    self._publish_static_tf()
+                    if self.camera_frame:  # else with the first image, which names it
+                        self._publish_static_tf()
         self.create_service(Trigger, "/rsvo/reset", self._on_reset)
         # ROS time going back (a /clock restart under use_sim_time) resets the odometry; image
         # stamps that go back are caught by the pipeline itself
@@ -297,6 +300,7 @@ class RsvoNode(Node):
                 self._bad(f"processing error: {type(exc).__name__}: {exc}")
 
     def _process(self, msg: Image, t_recv: float) -> None:
+        self._take_image_frame(msg)
         if self._camera is None:
             # keep the newest image until the camera info arrives (drivers and bags often send
             # an image just before its camera info); an older waiting one cannot be used
@@ -347,11 +351,31 @@ class RsvoNode(Node):
         self._publish(msg, res, gray)
         self._publish_ms.append((time.perf_counter() - t_pub) * 1e3)
 
+    @property
+    def camera_frame(self) -> str:
+        """The camera's frame id: the parameter, or (parameter '') the first image's frame_id;
+        '' until that image arrives."""
+        return self.p["camera_frame"] or self._image_frame
+
+    def _take_image_frame(self, msg: Image) -> None:
+        """camera_frame '': the first image names the camera's frame."""
+        if self.p["camera_frame"] or self._image_frame:
+            return
+        frame = msg.header.frame_id.strip()
+        if not frame:
+            frame = DEFAULT_CAMERA_FRAME
+            self.get_logger().warning(f"camera_frame '' and the images have no frame_id: "
+                                      f"using {frame}")
+        self._image_frame = frame
+        self.get_logger().info(f"camera frame from the images: {frame}")
+        if self.pub_tf_static is not None:
+            self._publish_static_tf()
+
     def _publish_static_tf(self) -> None:
         tf = TransformStamped()
         tf.header.stamp = self.get_clock().now().to_msg()
         tf.header.frame_id = self.p["base_frame"]
-        tf.child_frame_id = self.p["camera_frame"]
+        tf.child_frame_id = self.camera_frame
         fill_transform(tf.transform, self.T_base_cam)
         self.pub_tf_static.publish(TFMessage(transforms=[tf]))
 
@@ -367,7 +391,7 @@ class RsvoNode(Node):
         if lost and self.p["lost_odometry"] == "none":
             return
         T = self._to_odom(res.T_world_cam)
-        child = self.p["base_frame"] or self.p["camera_frame"]
+        child = self.p["base_frame"] or self.camera_frame
         odom = Odometry()
         odom.header.stamp = msg.header.stamp
         odom.header.frame_id = self.p["odom_frame"]
@@ -438,7 +462,7 @@ class RsvoNode(Node):
         rate = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0
         st = DiagnosticStatus()
         st.name = "rsvo_node: odometry"
-        st.hardware_id = self.p["camera_frame"]
+        st.hardware_id = self.camera_frame
         bad_recent = self.stats["bad"] > 0
         st.level = DiagnosticStatus.OK if not bad_recent and self._tracking != "lost" \
             else DiagnosticStatus.WARN

@@ -146,7 +146,10 @@ PARAMETERS = {
     "lm_max_iterations": (30, _int("Levenberg-Marquardt iterations of the refinements.", 1,
                                    500)),
     "odom_frame": ("odom", _str("frame_id of the odometry and path.")),
-    "camera_frame": ("camera_optical_frame", _str("The camera's optical frame id.")),
+    "camera_frame": ("camera_optical_frame", _str(
+        "The camera's optical frame id; '' takes the images' own header.frame_id (the first "
+        "image's; camera_optical_frame where it is empty), so that /tf joins the camera "
+        "driver's frames.")),
     "base_frame": ("", _str("If set, odometry is published for this frame (child_frame_id) "
                             "using base_to_camera.")),
     "base_to_camera": ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],

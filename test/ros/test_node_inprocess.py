@@ -226,6 +226,44 @@ def test_a_binned_cameras_full_resolution_info_gives_the_same_odometry(ros_conte
     assert np.array_equal(poses[0], poses[1])
 
 
+@pytest.mark.parametrize("image_frame", ["front_cam_optical", ""])
+def test_an_empty_camera_frame_takes_the_images_frame_id(ros_context, image_frame):
+    """camera_frame '': the odometry's child frame and base -> camera on /tf_static name the
+    frame the camera driver stamps its images with (camera_optical_frame if they have none)."""
+    from tf2_msgs.msg import TFMessage
+
+    from rsvo_ros.ros.node import TF_STATIC_QOS
+
+    info, msgs = _frames(3)
+    for m in msgs:
+        m.header.frame_id = image_frame
+    expected = image_frame or "camera_optical_frame"
+    h = Harness(ros_context, [Parameter("model", value="gs"), Parameter("camera_frame", value="")])
+    try:
+        assert h.node.camera_frame == ""  # nothing names it before an image
+        h.feed(info, msgs)
+        assert {o.child_frame_id for o in h.odom} == {expected}
+        assert h.node.camera_frame == expected
+    finally:
+        h.close()
+    h = Harness(ros_context, [Parameter("model", value="gs"), Parameter("camera_frame", value=""),
+                              Parameter("base_frame", value="base_link")])
+    static = []
+    h.client_node.create_subscription(TFMessage, "/tf_static", static.append, TF_STATIC_QOS)
+    try:
+        time.sleep(0.5)
+        assert not static  # base -> camera waits for the image that names the camera
+        h.feed(info, msgs)
+        t_end = time.monotonic() + 5.0
+        while not static and time.monotonic() < t_end:
+            time.sleep(0.05)
+        (tf,) = static[-1].transforms
+        assert (tf.header.frame_id, tf.child_frame_id) == ("base_link", expected)
+        assert {o.child_frame_id for o in h.odom} == {"base_link"}
+    finally:
+        h.close()
+
+
 def test_path_publish_period_bounds_the_path_messages(ros_context):
     """Every frame has its odometry; the path goes out at most once per period (the first
     frame's here), and holds every pose so far."""
