@@ -9,9 +9,9 @@ What is published is the backward difference of the last two poses of one trajec
 body-frame velocities of the later one (Convention: ``T_world_cam`` poses at row-0 times;
 ``R_cur = R_prev Exp(w dt)``, ``v = R_cur^T (p_cur - p_prev) / dt``), not the RS model's
 per-frame velocity: against the renderer's instantaneous row-0 angular velocity the frame's RS
-velocity was no better (30-110 % median error on vehicles, walks and hand-held bags against
-27-95 % for the difference; docs/notebook.md, "The odometry's twist"). The linear part is in the
-map's units per second (monocular: the trajectory's scale).
+velocity was better on one bag of six (29-110 % median error on vehicles, walks and hand-held
+bags against 27-95 % for the difference; docs/notebook.md, "The odometry's twist"). The linear
+part is in the map's units per second (monocular: the trajectory's scale).
 
 Its covariance is measured, not assumed: half the mean squared change of each component between
 consecutive twists over the last ``TwistOptions.window`` frames (white noise of variance s^2
