@@ -135,6 +135,7 @@ class RsvoNode(Node):
         self._last_path_publish = -np.inf
         self.pub_tf = self.pub_tf_static = None
         self._image_frame = ""  # camera_frame '': the first image's frame_id
+        self._twist_known = False  # the last odometry message carried a measured twist
         if self.p["publish_tf"]:
             if TFMessage is None:
                 self.get_logger().error("tf2_msgs is not installed: /tf is not published (run "
@@ -403,6 +404,7 @@ class RsvoNode(Node):
         if self.p["base_frame"]:
             twist = twist_in_frame(twist, self.T_base_cam)
         fill_twist(odom.twist.twist, twist.linear, twist.angular)
+        self._twist_known = twist.known and not lost
         odom.twist.covariance = [float(x) for x in covariance_for_msg(twist.covariance)]
         self.pub_odom.publish(odom)
         if self.pub_tf is not None:
@@ -457,9 +459,6 @@ class RsvoNode(Node):
         self.pub_keyframes.publish(path)
 
     def _publish_diagnostics(self) -> None:
-        now = time.monotonic()
-        times = [t for t in self._recv_times if now - t < 5.0]
-        rate = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0
         st = DiagnosticStatus()
         st.name = "rsvo_node: odometry"
         st.hardware_id = self.camera_frame
@@ -467,7 +466,19 @@ class RsvoNode(Node):
         st.level = DiagnosticStatus.OK if not bad_recent and self._tracking != "lost" \
             else DiagnosticStatus.WARN
         st.message = self._state
-        vals = {
+        st.values = [KeyValue(key=k, value=v) for k, v in self._diagnostic_values().items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [st]
+        self.pub_diag.publish(arr)
+        self._hint_large_images()
+
+    def _diagnostic_values(self) -> dict[str, str]:
+        """The key-value pairs of /diagnostics."""
+        now = time.monotonic()
+        times = [t for t in self._recv_times if now - t < 5.0]
+        rate = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0
+        return {
             "input_rate_hz": f"{rate:.2f}",
             **{f"{name}_time_ms_{q_name}": f"{np.percentile(ms, q):.1f}" if ms else "n/a"
                for name, ms in (("processing", self._proc_ms), ("tracking", self._track_ms),
@@ -479,14 +490,13 @@ class RsvoNode(Node):
             "tracking_state": self._tracking,
             **{k: str(v) for k, v in self.stats.items()},
             "model": self.p["model"], "line_delay": str(self.p["line_delay"]),
+            "readout_direction": self.p["readout_direction"],
+            # the camera's frame id in use ('' : not named yet, camera_frame '' waits for an
+            # image); whether the last odometry carried a twist (measured) or none (1e6)
+            "camera_frame": self.camera_frame,
+            "twist": "measured" if self._twist_known else "none",
             **self._line_delay_diagnostics(),
         }  # fmt: skip
-        st.values = [KeyValue(key=k, value=v) for k, v in vals.items()]
-        arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [st]
-        self.pub_diag.publish(arr)
-        self._hint_large_images()
 
     def _hint_large_images(self) -> None:
         """Once: images too large for Fast DDS's default shared-memory segment arrive late."""

@@ -184,6 +184,10 @@ def test_odometry_twist_is_the_base_frames_motion_with_a_measured_covariance(ros
         assert np.allclose(covs[0], 1e6)
         known = [i for i, c in enumerate(covs) if not np.all(c == 1e6)]
         assert len(known) >= 4 and known[0] >= 2
+        diag = h.node._diagnostic_values()  # the last message's twist, and the settings
+        assert diag["twist"] == ("measured" if known[-1] == 11 else "none")
+        assert (diag["readout_direction"], diag["camera_frame"]) == ("down",
+                                                                     "camera_optical_frame")
 
         def pose(o):
             p, r = o.pose.pose.position, o.pose.pose.orientation
@@ -243,7 +247,7 @@ def test_an_empty_camera_frame_takes_the_images_frame_id(ros_context, image_fram
         assert h.node.camera_frame == ""  # nothing names it before an image
         h.feed(info, msgs)
         assert {o.child_frame_id for o in h.odom} == {expected}
-        assert h.node.camera_frame == expected
+        assert h.node.camera_frame == expected == h.node._diagnostic_values()["camera_frame"]
     finally:
         h.close()
     h = Harness(ros_context, [Parameter("model", value="gs"), Parameter("camera_frame", value=""),
