@@ -247,7 +247,13 @@ def test_colcon_installed_node_runs_the_same_graph(graph, small_bag, tmp_path):
     data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002"],
                       ["--rate", "0.25"], FRAMES,
                       node_cmd=[str(install / "lib" / "rsvo_ros" / "rsvo_node")])
-    assert len(data["odom"]) == FRAMES, _why_missing(graph, data)
+    # Every frame reaches the installed node and is posed or counted as dropped while it was
+    # busy (the newest-frame policy; under the full suite on 2 cores one of 24 was dropped in
+    # two runs, 2026-11-26 and an earlier session: received 24, processed 23, dropped 1)
+    last = data["diagnostics"][-1]
+    received, processed, dropped = (int(last[k]) for k in ("received", "processed", "dropped"))
+    assert received == FRAMES and processed + dropped == received, _why_missing(graph, data)
+    assert len(data["odom"]) == processed >= FRAMES - 2, _why_missing(graph, data)
 
 
 def test_best_effort_publisher_connects(graph, small_bag):
