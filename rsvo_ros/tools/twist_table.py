@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from rsvo_ros.sim.synth import SynthConfig
-from rsvo_ros.tools.replay import ReplayConfig, replay
+from rsvo_ros.tools.replay import ReplayConfig, ground_truth_of, replay
 from rsvo_ros.tools.synth_bag import write_bag
 
 # (motion, severity, seed): the motion-blur table's seeds (720-725 looked at there, 730-734
@@ -112,7 +112,7 @@ def rates(out_dir: Path) -> dict[str, np.ndarray]:
     backward difference from the previous frame; rows without a twist left out)."""
     from rosbags.rosbag2 import Reader
 
-    from rsvo_ros.core.geometry import so3_log
+    from rsvo_ros.odometry.twist import body_twist
     from rsvo_ros.ros import bagio
     from rsvo_ros.ros.convert import COVARIANCE_UNKNOWN
 
@@ -123,22 +123,21 @@ def rates(out_dir: Path) -> dict[str, np.ndarray]:
 
     summary_ = json.loads((out_dir / "summary.json").read_text())
     odom = read(out_dir / "odometry", "/rsvo/odom")
-    gt = read(Path(summary_["bag"]), "/ground_truth/odom")
+    gt = {s: ground_truth_of(m, bagio.ODOMETRY_TYPE)
+          for s, m in read(Path(summary_["bag"]), "/ground_truth/odom").items()}
     stamps = sorted(gt)
-    gt_R = {s: bagio.pose_of(gt[s].pose.pose)[0] for s in stamps}
+    previous = dict(zip(stamps[1:], stamps[:-1], strict=True))
     rows = []
     for s, o in sorted(odom.items()):
         # no twist: 1e6 on the whole diagonal (a measured variance in map units may be large)
         if np.all(np.reshape(o.twist.covariance, (6, 6)).diagonal() == COVARIANCE_UNKNOWN) \
-                or s not in gt:
+                or s not in previous:
             continue
-        i = stamps.index(s)
-        if i == 0:
-            continue
-        prev = stamps[i - 1]
-        a, b = o.twist.twist.angular, gt[s].twist.twist.angular
-        rows.append((s * 1e-9, [a.x, a.y, a.z], [b.x, b.y, b.z],
-                     so3_log(gt_R[prev].T @ gt_R[s]) / ((s - prev) * 1e-9)))
+        prev = previous[s]
+        a = o.twist.twist.angular
+        (T0, _), (T1, w_true) = gt[prev], gt[s]
+        rows.append((s * 1e-9, [a.x, a.y, a.z], w_true,
+                     body_twist(T0, T1, (s - prev) * 1e-9)[1]))
     return {"stamp_s": np.array([r[0] for r in rows]), "published": np.array([r[1] for r in rows]),
             "true": np.array([r[2] for r in rows]), "interval": np.array([r[3] for r in rows])}
 
