@@ -276,7 +276,7 @@ def replay(cfg: ReplayConfig) -> dict:
     gt: dict[int, np.ndarray] = {}
     gt_w: dict[int, np.ndarray] = {}  # the ground truth's angular velocity (row-0 frame)
     est: dict[int, np.ndarray] = {}  # the current trajectory (a time reset starts another)
-    twists: dict[int, Twist] = {}  # each posed frame's odometry twist
+    twists: list[tuple[int, Twist]] = []  # each posed frame's odometry twist (stamps may repeat)
     trajectories: list[dict[int, np.ndarray]] = [est]
     time_resets = 0
     refound = 0  # frames where the window re-found a lost map by its descriptors
@@ -421,7 +421,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     trajectories.append(est)
                     poses.clear()
                 est[stamp] = res.T_world_cam
-                twists[stamp] = res.twist
+                twists.append((stamp, res.twist))
                 tum.write(_pose_line(stamp, res.T_world_cam) + "\n")
                 writer.write(c_odom, stamp, bagio.serialize(_odometry(res)))
                 writer.write(c_tf, stamp, bagio.serialize(_tf(res)))
@@ -692,7 +692,7 @@ def keyframe_summary(log: dict, gt_w: dict[int, np.ndarray], row0_time: float = 
     return out
 
 
-def twist_summary(twists: dict[int, Twist], gt_w: dict[int, np.ndarray],
+def twist_summary(twists: list[tuple[int, Twist]], gt_w: dict[int, np.ndarray],
                   gt: dict[int, np.ndarray] | None = None, scale: float | None = None) -> dict:
     """How many frames' odometry carried a twist (``known``: a finite covariance), and its
     errors where the bag has ground truth. Against the true mean over the same interval (the
@@ -704,10 +704,10 @@ def twist_summary(twists: dict[int, Twist], gt_w: dict[int, np.ndarray],
     components within two standard deviations of the published covariance, against the
     interval's truth where there is one (about 95 % where the covariance is honest and the
     errors Gaussian)."""
-    known = {s: t for s, t in twists.items() if t.known}
+    known = [(s, t) for s, t in twists if t.known]  # (stamp, twist); a looped bag repeats stamps
     out = {"frames": len(twists), "known": len(known)}
     gt = gt or {}
-    matched = [(s, t) for s, t in sorted(known.items()) if s in gt and t.since_ns in gt]
+    matched = [(s, t) for s, t in known if s in gt and t.since_ns in gt]
     sigma_err = None
     if matched:
         truth = [body_twist(gt[t.since_ns], gt[s], (s - t.since_ns) * 1e-9) + (t,)
@@ -723,7 +723,7 @@ def twist_summary(twists: dict[int, Twist], gt_w: dict[int, np.ndarray],
         if scale is not None and np.isfinite(scale) and speed > 0:
             err_v = [np.linalg.norm(scale * t.linear - v) for v, _, t in truth]
             out["linear_rel_error_vs_interval_median"] = float(np.median(err_v) / speed)
-    inst = [(t, gt_w[s]) for s, t in sorted(known.items()) if s in gt_w]
+    inst = [(t, gt_w[s]) for s, t in known if s in gt_w]
     if inst:
         err = np.array([t.angular - w for t, w in inst])
         true = np.median([np.linalg.norm(w) for _, w in inst])

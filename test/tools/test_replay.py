@@ -224,6 +224,7 @@ def test_looped_bag_gives_two_trajectories(tmp_path, capsys):
         capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
     assert s["time_resets"] == 1 and s["frames_posed"] == 20
+    assert s["twist"]["frames"] == 20  # both passes' odometry, though their stamps repeat
     assert [t["frames"] for t in s["trajectories"]] == [10, 10]
     assert s["frames"][10]["status"] == "first" and "time jumped back" in s["frames"][10]["reason"]
     poses = np.array([[float(x) for x in ln.split()[1:]]
