@@ -21,6 +21,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry, Path
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import JumpThreshold
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, ParameterException
@@ -53,6 +54,7 @@ from rsvo_ros.ros.dds import DEFAULT_SHM_SEGMENT_BYTES
 from rsvo_ros.ros.draw import draw_tracks
 from rsvo_ros.ros.params import (
     PARAMETERS,
+    check_live_change,
     help_text,
     image_subscription,
     params_yaml,
@@ -171,7 +173,11 @@ class RsvoNode(Node):
             self._qos_timer = self.create_timer(0.2, self._try_subscribe_images)
         else:
             self._subscribe_images(self.p["image_qos_reliability"] == "reliable")
-        self.create_timer(float(self.p["diagnostics_period_s"]), self._publish_diagnostics)
+        self._diag_timer = self.create_timer(float(self.p["diagnostics_period_s"]),
+                                             self._publish_diagnostics)
+        # ros2 param set: the live parameters are checked, then taken from the next frame
+        self.add_on_set_parameters_callback(self._check_parameter_change)
+        self.add_post_set_parameters_callback(self._apply_parameter_change)
         self._worker = threading.Thread(target=self._work, name="rsvo_worker", daemon=True)
         self._worker.start()
 
@@ -196,6 +202,24 @@ class RsvoNode(Node):
         self.sub_image = self.create_subscription(msg_type, topic, self._on_image, qos)
         self.get_logger().info(f"subscribed to {topic} ({msg_type.__name__}, "
                                f"{'reliable' if reliable else 'best effort'})")
+
+    def _check_parameter_change(self, params: list) -> SetParametersResult:
+        for param in params:
+            reason = check_live_change(param.name, param.value)
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    def _apply_parameter_change(self, params: list) -> None:
+        for param in params:
+            old = self.p.values[param.name]
+            self.p.values[param.name] = param.value
+            if param.name == "diagnostics_period_s":
+                self._diag_timer.cancel()
+                self.destroy_timer(self._diag_timer)
+                self._diag_timer = self.create_timer(float(param.value),
+                                                     self._publish_diagnostics)
+            self.get_logger().info(f"parameter {param.name}: {old!r} -> {param.value!r}")
 
     # ------------------------------------------------------------------ callbacks
 

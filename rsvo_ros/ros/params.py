@@ -183,6 +183,27 @@ PARAMETERS = {
     "diagnostics_period_s": (1.0, _float("Diagnostics publishing period (s).", 0.1, 60.0)),
 }
 
+# the parameters a running node takes (``ros2 param set``), from its next frame (the
+# diagnostics period: from the next period); every other one is read once at start-up and
+# declared read-only, so that a change is refused ("Trying to set a read-only parameter")
+# instead of accepted and ignored
+LIVE_PARAMETERS = ("publish_debug_image", "lost_odometry", "path_publish_period_s",
+                   "map_publish_period_s", "diagnostics_period_s")
+for _name, (_default, _desc) in PARAMETERS.items():
+    _desc.read_only = _name not in LIVE_PARAMETERS
+    _desc.description += (" Can be changed while the node runs." if _name in LIVE_PARAMETERS
+                          else " Read at start-up (read-only).")
+
+
+def check_live_change(name: str, value) -> str:
+    """Why a running node refuses ``name = value`` ('' when it takes it); ranges and types
+    are rclpy's (the descriptors), this checks the choices."""
+    if name not in LIVE_PARAMETERS:
+        return f"{name} is read at start-up: restart the node with -p {name}:=VALUE"
+    if name in CHOICES and value not in CHOICES[name]:
+        return f"parameter {name} must be one of {CHOICES[name]}, got {value!r}"
+    return ""
+
 
 @dataclass
 class NodeConfig:

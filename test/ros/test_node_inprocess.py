@@ -14,6 +14,7 @@ import pytest
 import rclpy
 import yaml
 from nav_msgs.msg import Odometry, Path
+from rcl_interfaces.srv import SetParameters
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -280,6 +281,52 @@ def test_path_publish_period_bounds_the_path_messages(ros_context):
         h.feed(info, msgs)
         assert len(h.odom) == 4
         assert [len(p.poses) for p in paths] == [1]
+    finally:
+        h.close()
+
+
+def _set_parameter(h, name, value):
+    """``ros2 param set /rsvo_node NAME VALUE``: the node's SetParameters service."""
+    client = h.client_node.create_client(SetParameters, "/rsvo_node/set_parameters")
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(SetParameters.Request(
+        parameters=[Parameter(name, value=value).to_parameter_msg()]))
+    t_end = time.monotonic() + 10.0
+    while not future.done() and time.monotonic() < t_end:
+        time.sleep(0.01)
+    h.client_node.destroy_client(client)
+    return future.result().results[0]
+
+
+def test_a_running_node_takes_its_live_parameters_and_refuses_the_others(ros_context):
+    """What `ros2 param set` sees: a start-up parameter is refused (it used to be accepted and
+    ignored), a live one is checked and taken from the next frame."""
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("publish_debug_image", value=False)])
+    try:
+        assert h.node.describe_parameter("line_delay").read_only
+        assert not h.node.describe_parameter("publish_debug_image").read_only
+        info, msgs = _frames(6)
+        h.feed(info, msgs[:3])
+        time.sleep(0.3)
+        assert len(h.odom) == 3 and h.debug == []
+        refused = _set_parameter(h, "line_delay", 5e-5)
+        assert not refused.successful and "read-only" in refused.reason
+        assert h.node.get_parameter("line_delay").value == 0.0 and h.node.p["line_delay"] == 0.0
+        bad = _set_parameter(h, "lost_odometry", "hold")
+        assert not bad.successful and "large_covariance" in bad.reason
+        assert h.node.p["lost_odometry"] == "large_covariance"
+        out_of_range = _set_parameter(h, "diagnostics_period_s", 0.0)
+        assert not out_of_range.successful
+        assert _set_parameter(h, "diagnostics_period_s", 0.5).successful
+        assert h.node._diag_timer.timer_period_ns == 500_000_000
+        assert _set_parameter(h, "publish_debug_image", True).successful
+        assert h.node.p["publish_debug_image"] is True
+        h.feed(info, msgs[3:])
+        t_end = time.monotonic() + 5.0
+        while not h.debug and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert len(h.odom) == 6 and h.debug, "the debug image was not switched on"
     finally:
         h.close()
 
