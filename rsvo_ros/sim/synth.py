@@ -405,6 +405,10 @@ class SynthConfig:
     # random signal of unit RMS (three sines of 0.2-1.5 Hz from the seed); before the noise,
     # clipped to 0-255 like a sensor's output
     gain_variation: float = 0.0
+    # frames per second of the handheld / vehicle / walk motions (None: their 30 Hz); the same
+    # continuous motion sampled at another rate (a 15 Hz robot camera, a 60 Hz drone camera);
+    # then the default readout is the lesser of the paper's 36 ms and one frame interval
+    frame_rate: float | None = None
 
     def __post_init__(self):
         if self.lens != "none" and self.lens not in LENSES:
@@ -421,6 +425,12 @@ class SynthConfig:
             raise ValueError(f"line delay must be in [0, 1) s/row, got {self.line_delay}")
         if not np.isfinite(self.severity) or self.severity < 0:
             raise ValueError(f"severity must be >= 0, got {self.severity}")
+        if self.frame_rate is not None:
+            if self.motion == "paper":
+                raise ValueError("frame rate: the paper motion has its own "
+                                 f"{paper_scene.FRAME_RATE_HZ:g} Hz loop")
+            if not (np.isfinite(self.frame_rate) and 1.0 <= self.frame_rate <= 1000.0):
+                raise ValueError(f"frame rate must be in [1, 1000] Hz, got {self.frame_rate}")
         if not (np.isfinite(self.exposure) and 0.0 <= self.exposure < 1.0 / self.rate_hz):
             raise ValueError(f"exposure must be in [0, {1.0 / self.rate_hz:g}) s (under one frame "
                              f"interval at {self.rate_hz:g} Hz), got {self.exposure}")
@@ -434,11 +444,15 @@ class SynthConfig:
 
     @property
     def tau(self) -> float:
-        return default_line_delay(self.height) if self.line_delay is None else self.line_delay
+        if self.line_delay is not None:
+            return self.line_delay
+        if self.frame_rate is not None:
+            return min(REFERENCE_READOUT_S, 1.0 / self.frame_rate) / self.height
+        return default_line_delay(self.height)
 
     @property
     def rate_hz(self) -> float:
-        return FRAME_RATE_HZ[self.motion]
+        return FRAME_RATE_HZ[self.motion] if self.frame_rate is None else float(self.frame_rate)
 
     @property
     def lens_model(self) -> LensModel | None:

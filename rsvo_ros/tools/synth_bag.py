@@ -55,6 +55,7 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
         writer.set_custom_data("rsvo.noise", format(float(config.noise), ".12g"))
         writer.set_custom_data("rsvo.gain_variation", format(float(config.gain_variation),
                                                               ".12g"))
+        writer.set_custom_data("rsvo.frame_rate", format(float(config.rate_hz), ".12g"))
         if compressed is None:
             c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
         else:
@@ -103,7 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=30, help="number of images (default 30)")
     p.add_argument("--motion", choices=MOTIONS, default="handheld",
                    help="paper: 5 Hz loop with random per-frame RS velocities at --level; "
-                        "handheld / vehicle: 30 Hz shaken camera (default handheld)")
+                        "handheld / vehicle / walk: shaken camera at 30 Hz (--rate; default "
+                        "handheld)")
     p.add_argument("--level", type=int, default=6, choices=range(1, 7), metavar="1-6",
                    help="RS distortion level of --motion paper (default 6)")
     p.add_argument("--severity", type=float, default=1.0,
@@ -134,6 +136,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto exposure / gain: each frame's brightness times exp(A g(t)), g a "
                         "smooth random signal of unit RMS at 0.2-1.5 Hz (default 0: constant; "
                         "0.2 gives about 0.7-1.5x, up to 10 %% from one frame to the next)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+                   help="frames per second of handheld / vehicle / walk (default 30): the same "
+                        "motion sampled at another rate; the default readout is then the "
+                        "lesser of 36 ms and one frame interval")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -146,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
                              height=args.resolution[1], line_delay=args.line_delay,
                              seed=args.seed, lens=args.lens, exposure=args.exposure,
                              noise=args.noise,
-                             gain_variation=args.gain_variation)  # fmt: skip
+                             gain_variation=args.gain_variation,
+                             frame_rate=args.rate)  # fmt: skip
         summary = write_bag(args.out_bag, config, args.storage, args.overwrite,
                             progress=not args.no_progress, compressed=args.compressed)
     except (ValueError, FileExistsError) as exc:

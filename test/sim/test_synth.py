@@ -227,6 +227,32 @@ def test_readout_turn_rate_is_the_mean_over_the_readout():
     assert np.allclose(R0 @ so3_exp(readout * walk.readout_turn_rate(7)), R_last, atol=1e-9)
 
 
+def test_another_frame_rate_samples_the_same_motion():
+    """At 60 Hz every second frame is the 30 Hz frame of the same instant (same pose, same
+    velocities, same readout); at 15 Hz the default readout stays the paper's 36 ms, at 60 Hz
+    it is one frame interval."""
+    base = dict(motion="walk", severity=1.0, width=96, height=54, seed=3, line_delay=1e-4)
+    fast = SequenceRenderer(SynthConfig(**base, frames=14, frame_rate=60.0))
+    plain = SequenceRenderer(SynthConfig(**base, frames=7))
+    for k in range(7):
+        a, b = plain.frame_pose(k), fast.frame_pose(2 * k)
+        assert a[0] == pytest.approx(b[0], abs=1e-12)
+        for x, y in zip(a[1:5], b[1:5], strict=True):
+            assert np.allclose(x, y, atol=1e-12)
+    assert np.array_equal(plain.render(3).image, fast.render(6).image)
+    assert SynthConfig(height=360, frame_rate=15.0).tau * 360 == pytest.approx(0.036)
+    assert SynthConfig(height=360, frame_rate=60.0).tau * 360 == pytest.approx(1 / 60)
+    assert SynthConfig(height=360).tau * 360 == pytest.approx(0.036)  # the 30 Hz default
+    for bad, match in (({"frame_rate": 0.5}, "frame rate"),
+                       ({"frame_rate": float("nan")}, "frame rate"),
+                       ({"frame_rate": 10.0, "motion": "paper"}, "paper motion")):
+        with pytest.raises(ValueError, match=match):
+            SynthConfig(**bad)
+    # the exposure is checked against the chosen rate's frame interval
+    with pytest.raises(ValueError, match="exposure must be in"):
+        SynthConfig(frame_rate=60.0, exposure=0.02)
+
+
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
 def test_bag_round_trip(tmp_path, storage):
     cfg = SynthConfig(frames=4, motion="vehicle", width=96, height=54, seed=2)
@@ -283,7 +309,14 @@ def test_cli_refuses_to_overwrite_and_validates(tmp_path, capsys):
                        "0.01", "--noise", "2", "--gain-variation", "0.2", "--no-progress"]) == 0
     meta = bagio.custom_data(blurred)
     assert (meta["rsvo.exposure"], meta["rsvo.noise"]) == ("0.01", "2")
-    assert meta["rsvo.gain_variation"] == "0.2"
+    assert meta["rsvo.gain_variation"] == "0.2" and meta["rsvo.frame_rate"] == "30"
+    slow = tmp_path / "slow"
+    assert synth_main([str(slow), "--frames", "3", "--resolution", "64x36", "--rate", "15",
+                       "--no-progress"]) == 0
+    with Reader(slow) as reader:
+        stamps = [t for c, t, _ in reader.messages() if c.topic == bagio.IMAGE_TOPIC]
+    assert np.diff(stamps).tolist() == [66_666_667, 66_666_666]
+    assert bagio.custom_data(slow)["rsvo.frame_rate"] == "15"
     with pytest.raises(SystemExit):
         synth_main([str(tmp_path / "d"), "--resolution", "big"])
 
