@@ -188,6 +188,13 @@ def pose_components(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(T[:3, 3], float), quat_xyzw_from_matrix(T[:3, :3])
 
 
+def tum_line(stamp_ns: int, T: np.ndarray) -> str:
+    """One TUM trajectory line: ``stamp x y z qx qy qz qw`` (s, m, Hamilton unit quaternion)."""
+    (x, y, z), (qx, qy, qz, qw) = pose_components(T)
+    return (f"{stamp_ns / 1e9:.9f} {x:.9f} {y:.9f} {z:.9f} {qx:.9f} {qy:.9f} {qz:.9f} "
+            f"{qw:.9f}")
+
+
 def fill_pose(pose, T: np.ndarray) -> None:
     """Write ``T`` into a geometry_msgs/Pose (any library whose fields can be assigned)."""
     p, q = pose_components(T)

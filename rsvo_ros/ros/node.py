@@ -48,6 +48,7 @@ from rsvo_ros.ros.convert import (
     fill_twist,
     image_to_gray,
     stamp_ns,
+    tum_line,
     xyz_cloud_data,
 )
 from rsvo_ros.ros.dds import DEFAULT_SHM_SEGMENT_BYTES
@@ -125,6 +126,7 @@ class RsvoNode(Node):
         self._state = "waiting for camera info"
         self._tracking = "initialising"
         self._path: deque = deque(maxlen=int(self.p["path_max_length"]))
+        self._trajectory = TrajectoryFile(self.p["trajectory_file"], self.get_logger())
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, self.p["odom_topic"], reliable)
         self.pub_path = self.create_publisher(Path, self.p["path_topic"], reliable)
@@ -260,6 +262,7 @@ class RsvoNode(Node):
             if self.pipeline is not None:
                 self.pipeline.reset()
             self._path.clear()
+            self._trajectory.new_trajectory("ROS time jumped back")
             self.stats["time_resets"] += 1
         self.get_logger().warning("ROS time jumped back (a /clock restart?): odometry reset, "
                                   "the next frame starts a new trajectory")
@@ -269,6 +272,7 @@ class RsvoNode(Node):
             if self.pipeline is not None:
                 self.pipeline.reset()
             self._path.clear()
+            self._trajectory.new_trajectory("reset service")
         response.success = True
         response.message = "odometry reset: the next frame is the new origin"
         self.get_logger().info(response.message)
@@ -357,6 +361,7 @@ class RsvoNode(Node):
         if res.time_reset:
             self.stats["time_resets"] += 1
             self._path.clear()
+            self._trajectory.new_trajectory("image stamps went back")
             self.get_logger().warning(f"image stamps: {res.reason.split(' (')[0]}")
         if res.status == "skipped":
             self.stats["skipped"] += 1
@@ -431,6 +436,7 @@ class RsvoNode(Node):
         self._twist_known = twist.known and not lost
         odom.twist.covariance = [float(x) for x in covariance_for_msg(twist.covariance)]
         self.pub_odom.publish(odom)
+        self._trajectory.write(res.stamp_ns, T)
         if self.pub_tf is not None:
             tf = TransformStamped()
             tf.header = odom.header
@@ -588,7 +594,65 @@ class RsvoNode(Node):
         if self.pipeline is not None:
             self.pipeline.close()
             self._save_line_delay(final=True)
+        self._trajectory.close()
         return super().destroy_node()
+
+
+class TrajectoryFile:
+    """``trajectory_file``: the published poses as TUM lines. A file that cannot be written is
+    one error in the log, and the node goes on without it."""
+
+    FLUSH_PERIOD_S = 1.0
+
+    def __init__(self, path: str, logger):
+        self.path, self._logger = path, logger
+        self._file = None
+        self._lines = 0  # since the last "new trajectory"
+        self._last_flush = time.monotonic()
+        self._lock = threading.Lock()  # the worker writes, a service or a clock jump marks
+        if path:
+            try:
+                self._file = open(FilePath(path).expanduser(), "w")  # noqa: SIM115
+                logger.info(f"writing the published poses to {path} (TUM)")
+            except OSError as exc:
+                logger.error(f"trajectory_file: cannot write {path}: {exc}")
+
+    def write(self, stamp_ns: int, T: np.ndarray) -> None:
+        with self._lock:
+            if self._file is None:
+                return
+            try:
+                self._file.write(tum_line(stamp_ns, T) + "\n")
+                self._lines += 1
+                now = time.monotonic()
+                if now - self._last_flush >= self.FLUSH_PERIOD_S:
+                    self._file.flush()
+                    self._last_flush = now
+            except OSError as exc:
+                self._logger.error(f"trajectory_file: cannot write {self.path}: {exc}; "
+                                   "no more poses are written to it")
+                self._close()
+
+    def new_trajectory(self, reason: str) -> None:
+        with self._lock:
+            if self._file is not None and self._lines:
+                try:
+                    self._file.write(f"# new trajectory ({reason})\n")
+                except OSError:
+                    pass  # the next write says so
+                self._lines = 0
+
+    def close(self) -> None:
+        with self._lock:
+            self._close()
+
+    def _close(self) -> None:
+        if self._file is not None:
+            try:
+                self._file.close()
+            except OSError as exc:
+                self._logger.error(f"trajectory_file: cannot write {self.path}: {exc}")
+            self._file = None
 
 
 def _debug_image(msg: Image, gray: np.ndarray, res: FrameResult) -> Image:

@@ -94,6 +94,12 @@ PARAMETERS = {
         "converges and at shutdown (line_delay: the estimate, line_delay_mode: auto), so that "
         "the next start with --params-file FILE begins from it instead of the nominal "
         "half-frame readout; '' (default): not written.")),
+    "trajectory_file": ("", _str(
+        "Write every published odometry pose to this file as TUM lines (stamp x y z qx qy qz "
+        "qw, odom_frame to the published child frame), for evo or the TUM tools; a reset or "
+        "time jump back starts a new trajectory after a '# new trajectory' comment line; "
+        "replaced at start-up, flushed every second and at shutdown. '' (default): not "
+        "written.")),
     "model": ("rs", _str("Relative pose model.", MODELS)),
     "readout_direction": ("down", _str(
         "Which way the rolling shutter reads the images as they arrive: down (rows top to "
@@ -282,6 +288,10 @@ def read_config(values: dict) -> NodeConfig:
         folder = Path(p["line_delay_save_file"]).expanduser().parent
         if not folder.is_dir():
             raise ValueError(f"parameter line_delay_save_file: folder {folder} does not exist")
+    if p["trajectory_file"]:
+        folder = Path(p["trajectory_file"]).expanduser().parent
+        if not folder.is_dir():
+            raise ValueError(f"parameter trajectory_file: folder {folder} does not exist")
     refine_window_or_auto(p["klt_refine_window_px"], "parameter klt_refine_window_px")
     uncertain_rotation_or_auto(p["uncertain_rotation_deg"], "parameter uncertain_rotation_deg")
     tf = np.asarray(p["base_to_camera"], float)

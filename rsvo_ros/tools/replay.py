@@ -58,6 +58,7 @@ from rsvo_ros.ros.convert import (
     image_to_gray,
     pose_components,
     stamp_ns,
+    tum_line,
     xyz_cloud_data,
 )
 from rsvo_ros.ros.draw import draw_tracks
@@ -104,11 +105,6 @@ class ReplayConfig:
     camera_entry: str | None = None  # the Kalibr camchain's entry (cam0, cam1, ...)
     rectified: bool = False  # rectified images: CameraInfo's P, no lens
     debug_video: Path | None = None  # an MP4 of every processed frame with its tracks drawn
-
-
-def _pose_line(stamp: int, T: np.ndarray) -> str:
-    (x, y, z), (qx, qy, qz, qw) = pose_components(T)
-    return f"{stamp / 1e9:.9f} {x:.9f} {y:.9f} {z:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
 
 
 def _odometry(res: FrameResult):
@@ -422,7 +418,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     poses.clear()
                 est[stamp] = res.T_world_cam
                 twists.append((stamp, res.twist))
-                tum.write(_pose_line(stamp, res.T_world_cam) + "\n")
+                tum.write(tum_line(stamp, res.T_world_cam) + "\n")
                 writer.write(c_odom, stamp, bagio.serialize(_odometry(res)))
                 writer.write(c_tf, stamp, bagio.serialize(_tf(res)))
                 poses.append((stamp, res.T_world_cam))
@@ -537,7 +533,7 @@ def replay(cfg: ReplayConfig) -> dict:
                                                 pipeline.window.row0_time())
         kf_poses = dict(pipeline.keyframe_poses())
         with open(cfg.output / "keyframes.tum", "w") as f:
-            f.writelines(_pose_line(s, T) + "\n" for s, T in sorted(kf_poses.items()))
+            f.writelines(tum_line(s, T) + "\n" for s, T in sorted(kf_poses.items()))
         if gt and sum(s in gt for s in kf_poses) >= 3:
             # the corrected keyframe trajectory (the window's last word on each keyframe),
             # beside the continuous published odometry above

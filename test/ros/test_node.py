@@ -276,7 +276,9 @@ def test_invalid_parameters_fail_at_start_up(tmp_path):
                        (["-p", "line_delay_save_file:=/tmp/x.yaml"], "line_delay_save_file"),
                        (["-p", "line_delay_mode:=auto", "-p",
                          f"line_delay_save_file:={tmp_path}/no/such/x.yaml"],
-                        "does not exist")):
+                        "does not exist"),
+                       (["-p", f"trajectory_file:={tmp_path}/no/such/live.tum"],
+                        "trajectory_file")):
         proc = subprocess.run([str(BIN / "rsvo_node"), "--ros-args", *args], env=env,
                               capture_output=True, text=True, timeout=60)
         assert proc.returncode == 2, (args, proc.stdout, proc.stderr)

@@ -152,6 +152,30 @@ def test_reset_service_restarts_at_the_origin_and_debug_image_is_drawn(ros_conte
         h.close()
 
 
+def test_trajectory_file_holds_every_published_pose_and_marks_a_reset(ros_context, tmp_path):
+    """trajectory_file: the odometry as published, one TUM line per message, a comment line
+    where the reset service started a new trajectory; what evo and numpy's loadtxt read."""
+    path = tmp_path / "live.tum"
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("trajectory_file", value=str(path))])
+    try:
+        info, msgs = _frames(6)
+        h.feed(info, msgs[:4])
+        h.node._on_reset(Trigger.Request(), Trigger.Response())
+        h.feed(info, msgs[4:])
+        assert len(h.odom) == 6
+    finally:
+        h.close()  # closes the file
+    lines = path.read_text().splitlines()
+    assert len(lines) == 7 and lines[4] == "# new trajectory (reset service)"
+    rows = np.loadtxt(path, comments="#")
+    for row, odom in zip(rows, h.odom, strict=True):
+        p, q = odom.pose.pose.position, odom.pose.pose.orientation
+        assert row[0] == pytest.approx(_stamp(odom) * 1e-9, abs=1e-9)
+        assert np.allclose(row[1:], [p.x, p.y, p.z, q.x, q.y, q.z, q.w], atol=1e-8)
+    assert np.linalg.norm(rows[3, 1:4]) > 0.1 and np.allclose(rows[4, 1:4], 0.0)
+
+
 def test_base_frame_odometry_uses_the_fixed_transform(ros_context):
     q = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_quat()  # optical -> base
     h = Harness(ros_context, [Parameter("model", value="gs"),
