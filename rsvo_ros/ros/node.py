@@ -75,6 +75,8 @@ DEFAULT_CAMERA_FRAME = "camera_optical_frame"  # camera_frame '' and images with
 # is a stamp from another clock (a bag's), not a transport
 LARGE_IMAGE_HINT_MS = (8.0, 1000.0)
 # what tf2_ros's broadcasters use: /tf keeps 100, /tf_static is latched for late subscribers
+# relative: in the node's namespace, as the topics (/rsvo/reset in the root namespace)
+RESET_SERVICE = "rsvo/reset"
 TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -151,7 +153,7 @@ class RsvoNode(Node):
                                                                TF_STATIC_QOS)  # fmt: skip
                     if self.camera_frame:  # else with the first image, which names it
                         self._publish_static_tf()
-        self.create_service(Trigger, "/rsvo/reset", self._on_reset)
+        self.create_service(Trigger, RESET_SERVICE, self._on_reset)
         # ROS time going back (a /clock restart under use_sim_time) resets the odometry; image
         # stamps that go back are caught by the pipeline itself
         self._clock_jump = self.get_clock().create_jump_callback(

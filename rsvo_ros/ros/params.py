@@ -18,6 +18,9 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     ParameterType,
 )
+from rclpy.exceptions import InvalidTopicNameException
+from rclpy.expand_topic_name import expand_topic_name
+from rclpy.validate_full_topic_name import validate_full_topic_name
 from scipy.spatial.transform import Rotation
 
 from rsvo_ros.core.readout import READOUTS, check_readout
@@ -61,13 +64,13 @@ def _bool(desc):
 
 
 PARAMETERS = {
-    "image_topic": ("/camera/image_raw", _str("Input sensor_msgs/Image topic (the base "
-                                              "topic with image_transport compressed).")),
+    "image_topic": ("camera/image_raw", _str("Input sensor_msgs/Image topic (the base "
+                                             "topic with image_transport compressed).")),
     "image_transport": ("raw", _str(
         "raw: sensor_msgs/Image on image_topic; compressed: sensor_msgs/CompressedImage (JPEG "
         "or PNG) on image_topic + '/compressed', as image_transport's compressed plugin "
         "publishes it (decoded here; JPEG artefacts cost some accuracy).", IMAGE_TRANSPORTS)),
-    "camera_info_topic": ("/camera/camera_info", _str("Input sensor_msgs/CameraInfo topic.")),
+    "camera_info_topic": ("camera/camera_info", _str("Input sensor_msgs/CameraInfo topic.")),
     "image_rectified": (False, _bool(
         "The images are rectified (image_proc's image_rect): the intrinsics are CameraInfo's "
         "projection P (with camera_file: its projection_matrix) and no lens distortion is "
@@ -80,9 +83,9 @@ PARAMETERS = {
     "camera_file_entry": ("", _str(
         "camera_file is a Kalibr camchain of several cameras: the entry to use (cam0, cam1, "
         "...); '' (default): the only one, or cam0.")),
-    "odom_topic": ("/rsvo/odom", _str("Output nav_msgs/Odometry topic.")),
-    "path_topic": ("/rsvo/path", _str("Output nav_msgs/Path topic.")),
-    "debug_image_topic": ("/rsvo/debug_image", _str("Output debug image (tracks, inliers).")),
+    "odom_topic": ("rsvo/odom", _str("Output nav_msgs/Odometry topic.")),
+    "path_topic": ("rsvo/path", _str("Output nav_msgs/Path topic.")),
+    "debug_image_topic": ("rsvo/debug_image", _str("Output debug image (tracks, inliers).")),
     "line_delay": (0.0, _float("Seconds per image row (rolling-shutter line delay, tau); "
                                "0 for a global shutter.", 0.0, 1e-3)),
     "line_delay_mode": ("fixed", _str(
@@ -169,10 +172,10 @@ PARAMETERS = {
         "While tracking is lost: large_covariance publishes the held pose with a covariance of "
         "1e6 on the diagonal (rtabmap's convention); none publishes no odometry (and no /tf).",
         LOST_CHOICES)),
-    "map_points_topic": ("/rsvo/map_points", _str("Output sensor_msgs/PointCloud2: the local "
-                                                  "map's landmarks in odom_frame.")),
-    "keyframe_path_topic": ("/rsvo/keyframes", _str("Output nav_msgs/Path: the keyframes as the "
-                                                    "window last corrected them.")),
+    "map_points_topic": ("rsvo/map_points", _str("Output sensor_msgs/PointCloud2: the local "
+                                                 "map's landmarks in odom_frame.")),
+    "keyframe_path_topic": ("rsvo/keyframes", _str("Output nav_msgs/Path: the keyframes as the "
+                                                   "window last corrected them.")),
     "map_publish_period_s": (1.0, _float("Period of the map points and keyframe path (s); "
                                          "0 publishes them with every frame.", 0.0, 60.0)),
     "path_max_length": (1000, _int("Poses kept in the published path (and keyframes kept "
@@ -188,6 +191,14 @@ PARAMETERS = {
     "publish_debug_image": (True, _bool("Publish the debug image.")),
     "diagnostics_period_s": (1.0, _float("Diagnostics publishing period (s).", 0.1, 60.0)),
 }
+
+# the topic parameters: relative names (the defaults) take the node's namespace, so that
+# `--ros-args -r __ns:=/left` runs a second camera's odometry beside the first
+TOPIC_PARAMETERS = ("image_topic", "camera_info_topic", "odom_topic", "path_topic",
+                    "debug_image_topic", "map_points_topic", "keyframe_path_topic")
+for _name in TOPIC_PARAMETERS:
+    PARAMETERS[_name][1].description += (" A relative name (the default) is in the node's "
+                                         "namespace; a leading / makes it absolute.")
 
 # the parameters a running node takes (``ros2 param set``), from its next frame (the
 # diagnostics period: from the next period); every other one is read once at start-up and
@@ -298,10 +309,16 @@ def read_config(values: dict) -> NodeConfig:
     if tf.shape != (7,) or not np.isfinite(tf).all() or abs(np.linalg.norm(tf[3:]) - 1) > 1e-3:
         raise ValueError("parameter base_to_camera must be [x, y, z, qx, qy, qz, qw] with a "
                          f"unit quaternion, got {list(tf)}")  # fmt: skip
-    for topic in ("image_topic", "camera_info_topic", "odom_topic", "path_topic",
-                  "map_points_topic", "keyframe_path_topic"):
+    for topic in TOPIC_PARAMETERS:
         if not p[topic]:
             raise ValueError(f"parameter {topic} must not be empty")
+        try:  # as rclpy checks it, in the root namespace (the node's own is checked by rcl)
+            validate_full_topic_name(expand_topic_name(p[topic], "rsvo_node", "/"))
+        except (InvalidTopicNameException, ValueError) as exc:  # rcl's expansion: ValueError
+            reason = str(exc).splitlines()[0].split(": ", 1)[-1].split(", at /")[0]
+            reason = reason.rstrip(":")
+            raise ValueError(f"parameter {topic}: {p[topic]!r} is not a topic name ({reason})"
+                             ) from None
     T_base_cam = np.eye(4)
     T_base_cam[:3, :3] = Rotation.from_quat(tf[3:]).as_matrix()
     T_base_cam[:3, 3] = tf[:3]

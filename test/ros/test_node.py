@@ -278,7 +278,9 @@ def test_invalid_parameters_fail_at_start_up(tmp_path):
                          f"line_delay_save_file:={tmp_path}/no/such/x.yaml"],
                         "does not exist"),
                        (["-p", f"trajectory_file:={tmp_path}/no/such/live.tum"],
-                        "trajectory_file")):
+                        "trajectory_file"),
+                       (["-p", "odom_topic:=rsvo odom"], "odom_topic: 'rsvo odom' is not a"),
+                       (["-p", "path_topic:=/rsvo//path"], "repeated '/'")):
         proc = subprocess.run([str(BIN / "rsvo_node"), "--ros-args", *args], env=env,
                               capture_output=True, text=True, timeout=60)
         assert proc.returncode == 2, (args, proc.stdout, proc.stderr)

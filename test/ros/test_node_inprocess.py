@@ -176,6 +176,26 @@ def test_trajectory_file_holds_every_published_pose_and_marks_a_reset(ros_contex
     assert np.linalg.norm(rows[3, 1:4]) > 0.1 and np.allclose(rows[4, 1:4], 0.0)
 
 
+def test_a_namespaced_node_keeps_its_topics_and_service_in_its_namespace(ros_context):
+    """`rsvo_node --ros-args -r __ns:=/left`: a second camera's odometry beside the first
+    (the default topic names are relative; absolute ones ignored the namespace)."""
+    node = RsvoNode(context=ros_context, namespace="/left",
+                    parameter_overrides=[Parameter("model", value="gs"),
+                                         Parameter("image_qos_reliability", value="reliable")])
+    try:
+        names = {node.pub_odom.topic_name, node.pub_path.topic_name, node.pub_debug.topic_name,
+                 node.pub_map.topic_name, node.pub_keyframes.topic_name,
+                 node.sub_image.topic_name, node.sub_info.topic_name}
+        assert names == {"/left/rsvo/odom", "/left/rsvo/path", "/left/rsvo/debug_image",
+                         "/left/rsvo/map_points", "/left/rsvo/keyframes",
+                         "/left/camera/image_raw", "/left/camera/camera_info"}
+        services = dict(node.get_service_names_and_types_by_node("rsvo_node", "/left"))
+        assert "/left/rsvo/reset" in services and "/rsvo/reset" not in services
+        assert node.pub_diag.topic_name == "/diagnostics"  # where the aggregator listens
+    finally:
+        node.destroy_node()
+
+
 def test_base_frame_odometry_uses_the_fixed_transform(ros_context):
     q = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_quat()  # optical -> base
     h = Harness(ros_context, [Parameter("model", value="gs"),
