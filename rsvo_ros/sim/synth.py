@@ -23,7 +23,7 @@ Conventions: world frame y down (the loop lies in x-z), camera optical frame, po
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -100,6 +100,29 @@ def make_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarr
     return np.clip(tex + 128.0, 0.0, 255.0)
 
 
+MOVER_TEXTURE = 4  # the surface index of the movers (the corridor's are 0-3)
+
+
+@dataclass
+class Mover:
+    """A pedestrian-sized textured panel that moves at constant velocity through the corridor
+    (``SynthConfig.movers``): what people and cars are to visual odometry, a coherent group of
+    points whose motion is not the camera's. Its centre is at ``centre0`` (world) at time
+    ``t0`` (s, the sequence's clock); it faces ``normal`` (unit, horizontal)."""
+
+    centre0: np.ndarray
+    t0: float
+    velocity: np.ndarray  # m/s, world
+    normal: np.ndarray
+    half_width: float = 0.35
+    half_height: float = 0.85
+    texture_offset: float = 0.0  # m along the mover texture: each mover wears its own part
+
+    def centres(self, times: np.ndarray) -> np.ndarray:
+        """(N, 3) the panel's centre at ``times`` (N,) s."""
+        return self.centre0 + (np.asarray(times, float) - self.t0)[:, None] * self.velocity
+
+
 @dataclass
 class CorridorScene:
     """Walls, floor and ceiling of a corridor along the paper's loop, each with a texture.
@@ -110,6 +133,8 @@ class CorridorScene:
     """
 
     textures: list[np.ndarray]
+    # the movers' texture (:class:`Mover`; surface MOVER_TEXTURE); None: the scene has none
+    mover_texture: np.ndarray | None = None
     centre: tuple[float, float] = (paper_scene.LOOP_START[0] + paper_scene.LOOP_SEMI_AXES_M[0],
                                    paper_scene.LOOP_START[2])  # fmt: skip
     semi_axes: tuple[float, float] = paper_scene.LOOP_SEMI_AXES_M
@@ -120,7 +145,8 @@ class CorridorScene:
     @staticmethod
     def create(seed: int) -> CorridorScene:
         rng = np.random.default_rng([seed, 7])
-        return CorridorScene([make_texture(rng) for _ in range(4)])
+        textures = [make_texture(rng) for _ in range(4)]
+        return CorridorScene(textures, make_texture(np.random.default_rng([seed, 19])))
 
     def wall_axes(self, which: int) -> tuple[float, float]:
         a, b = self.semi_axes
@@ -128,15 +154,22 @@ class CorridorScene:
         return a + sign * self.half_width, b + sign * self.half_width
 
     def render(self, R_rows: np.ndarray, p_rows: np.ndarray, K: np.ndarray, width: int,
-               height: int, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+               height: int, rays: tuple[np.ndarray, np.ndarray] | None = None,
+               movers: Sequence[Mover] = (), row_times: np.ndarray | None = None) -> np.ndarray:
         """uint8 (height, width) image; row ``r`` seen from ``(R_rows[r], p_rows[r])``
         (``T_world_camera`` of that row). ``rays``: each pixel's normalized ``(x, y)`` (a lens:
-        :func:`pixel_rays`); None: the pinhole ``K``."""
-        return to_uint8(self.radiance(R_rows, p_rows, K, width, height, rays))
+        :func:`pixel_rays`); None: the pinhole ``K``. ``movers`` are drawn where each row sees
+        them at its time ``row_times[r]`` (s)."""
+        return to_uint8(self.radiance(R_rows, p_rows, K, width, height, rays, movers,
+                                      row_times))  # fmt: skip
 
     def radiance(self, R_rows: np.ndarray, p_rows: np.ndarray, K: np.ndarray, width: int,
-                 height: int, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                 height: int, rays: tuple[np.ndarray, np.ndarray] | None = None,
+                 movers: Sequence[Mover] = (), row_times: np.ndarray | None = None
+                 ) -> np.ndarray:  # fmt: skip
         """:meth:`render` before quantisation: float32 grey levels (0..255)."""
+        if movers and (row_times is None or self.mover_texture is None):
+            raise ValueError("movers need the rows' times and a scene with a mover texture")
         f32 = np.float32
         # world ray of pixel (r, c): R_r (x, y, 1) = x R_r[:, 0] + y R_r[:, 1] + R_r[:, 2]
         if rays is None:  # pinhole: x depends on the column only, y on the row only
@@ -183,10 +216,28 @@ class CorridorScene:
                 surf[hit] = which
                 tex_s[hit] = np.broadcast_to(o[0], lam.shape)[hit] + lam_h * d[0][hit]
                 tex_t[hit] = np.broadcast_to(o[2], lam.shape)[hit] + lam_h * d[2][hit]
+            for mover in movers:  # a vertical panel, its centre where it is at each row's time
+                n = mover.normal.astype(f32)
+                e1 = np.cross([0.0, 1.0, 0.0], mover.normal).astype(f32)  # horizontal, in plane
+                rel = (mover.centres(row_times) - p_rows).astype(f32)  # (H, 3) camera to centre
+                nd = n[0] * d[0] + n[1] * d[1] + n[2] * d[2]
+                lam = (rel @ n)[:, None] / nd
+                # the hit point from the centre, along e1 and down (y)
+                u = lam * (e1[0] * d[0] + e1[1] * d[1] + e1[2] * d[2]) - (rel @ e1)[:, None]
+                v = lam * d[1] - rel[:, 1:2]
+                hit = (lam > 1e-3) & (lam < best) & (np.abs(u) <= mover.half_width) \
+                    & (np.abs(v) <= mover.half_height)  # fmt: skip
+                best[hit] = lam[hit]
+                surf[hit] = MOVER_TEXTURE
+                tex_s[hit] = u[hit] + mover.texture_offset
+                tex_t[hit] = v[hit]
         img = np.zeros((height, width), f32)
         map_x = np.mod(tex_s * TEXELS_PER_M, TEXTURE_SIZE).astype(f32)
         map_y = np.mod(tex_t * TEXELS_PER_M, TEXTURE_SIZE).astype(f32)
-        for which, tex in enumerate(self.textures):
+        textures = list(self.textures)
+        if movers:
+            textures.append(self.mover_texture)
+        for which, tex in enumerate(textures):
             mask = surf == which
             if not mask.any():
                 continue
@@ -409,6 +460,9 @@ class SynthConfig:
     # continuous motion sampled at another rate (a 15 Hz robot camera, a 60 Hz drone camera);
     # then the default readout is the lesser of the paper's 36 ms and one frame interval
     frame_rate: float | None = None
+    # people crossing or walking along in front of the camera (handheld / vehicle / walk):
+    # this many pedestrian-sized textured panels (:class:`Mover`), spread over the sequence
+    movers: int = 0
 
     def __post_init__(self):
         if self.lens != "none" and self.lens not in LENSES:
@@ -431,6 +485,9 @@ class SynthConfig:
                                  f"{paper_scene.FRAME_RATE_HZ:g} Hz loop")
             if not (np.isfinite(self.frame_rate) and 1.0 <= self.frame_rate <= 1000.0):
                 raise ValueError(f"frame rate must be in [1, 1000] Hz, got {self.frame_rate}")
+        if self.movers < 0 or self.movers and self.motion == "paper":
+            raise ValueError(f"movers must be >= 0, and the paper motion has none, got "
+                             f"{self.movers} with motion {self.motion}")
         if not (np.isfinite(self.exposure) and 0.0 <= self.exposure < 1.0 / self.rate_hz):
             raise ValueError(f"exposure must be in [0, {1.0 / self.rate_hz:g}) s (under one frame "
                              f"interval at {self.rate_hz:g} Hz), got {self.exposure}")
@@ -514,6 +571,33 @@ class SequenceRenderer:
             self._traj = ContinuousTrajectory(SPEED_M_S[config.motion],
                                               ShakeModel.create(config.motion, config.severity,
                                                                 rng))  # fmt: skip
+        self.movers = self._create_movers() if config.movers else []
+
+    def _create_movers(self) -> list[Mover]:
+        """``config.movers`` people, each in front of the camera (3-6 m ahead) at a time of
+        its own spread over the sequence: alternately crossing the view (1.0-1.6 m/s across
+        the camera's heading) and walking along it (towards or away, 0.8-1.5 m/s), facing the
+        camera (from their own seed: the bag without movers is the same bag)."""
+        cfg = self.config
+        rng = np.random.default_rng([cfg.seed, 23])
+        duration = cfg.frames / cfg.rate_hz
+        movers = []
+        for i in range(cfg.movers):
+            t0 = duration * (0.1 + 0.8 * (i + rng.uniform(0.2, 0.8)) / cfg.movers)
+            R, p = self._traj.pose(np.array([t0]))
+            forward = R[0][:, 2] * [1.0, 0.0, 1.0]
+            forward /= np.linalg.norm(forward)
+            right = np.cross([0.0, 1.0, 0.0], forward)  # the camera's x, horizontal
+            half_height = 0.85
+            centre = p[0] + rng.uniform(3.0, 6.0) * forward + rng.uniform(-0.5, 0.5) * right
+            centre[1] = self.scene.floor_y - half_height  # standing on the floor (y down)
+            if i % 2 == 0:
+                velocity = rng.choice([-1.0, 1.0]) * rng.uniform(1.0, 1.6) * right
+            else:
+                velocity = rng.choice([-1.0, 1.0]) * rng.uniform(0.8, 1.5) * forward
+            movers.append(Mover(centre, float(t0), velocity, -forward, 0.35, half_height,
+                                texture_offset=2.0 * i))  # fmt: skip
+        return movers
 
     @property
     def trajectory(self) -> ContinuousTrajectory | WalkTrajectory | None:
@@ -575,11 +659,13 @@ class SequenceRenderer:
             img = np.zeros((cfg.height, cfg.width), np.float32)
             for dt in cfg.exposure * ((np.arange(n) + 0.5) / n - 0.5):
                 img += self.scene.radiance(*row_pose(rows, dt), self.K, cfg.width, cfg.height,
-                                           self._rays)  # fmt: skip
+                                           self._rays, self.movers,
+                                           stamp + rows * cfg.tau + dt)  # fmt: skip
             img /= n
         else:
             img = self.scene.radiance(*row_pose(rows), self.K, cfg.width, cfg.height,
-                                      self._rays)  # fmt: skip
+                                      self._rays, self.movers,
+                                      stamp + rows * cfg.tau)  # fmt: skip
         if cfg.gain_variation > 0:
             img = img * np.float32(self.gain(k))
         if cfg.noise > 0:  # per frame, from the seed: the same bag every time

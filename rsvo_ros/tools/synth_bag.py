@@ -56,6 +56,7 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
         writer.set_custom_data("rsvo.gain_variation", format(float(config.gain_variation),
                                                               ".12g"))
         writer.set_custom_data("rsvo.frame_rate", format(float(config.rate_hz), ".12g"))
+        writer.set_custom_data("rsvo.movers", str(config.movers))
         if compressed is None:
             c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
         else:
@@ -140,6 +141,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames per second of handheld / vehicle / walk (default 30): the same "
                         "motion sampled at another rate; the default readout is then the "
                         "lesser of 36 ms and one frame interval")
+    p.add_argument("--movers", type=int, default=0, metavar="N",
+                   help="handheld / vehicle / walk: N people (pedestrian-sized textured "
+                        "panels) crossing or walking along in front of the camera, spread over "
+                        "the sequence: points that move on their own (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -153,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                              seed=args.seed, lens=args.lens, exposure=args.exposure,
                              noise=args.noise,
                              gain_variation=args.gain_variation,
-                             frame_rate=args.rate)  # fmt: skip
+                             frame_rate=args.rate, movers=args.movers)  # fmt: skip
         summary = write_bag(args.out_bag, config, args.storage, args.overwrite,
                             progress=not args.no_progress, compressed=args.compressed)
     except (ValueError, FileExistsError) as exc:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -253,6 +254,47 @@ def test_another_frame_rate_samples_the_same_motion():
         SynthConfig(frame_rate=60.0, exposure=0.02)
 
 
+@pytest.mark.parametrize("line_delay", [0.0, 1e-4])
+def test_movers_are_drawn_where_each_row_sees_them(line_delay):
+    """A mover changes the image only where it is: in each row, centred on where its centre
+    line projects from that row's pose at that row's time (with a rolling shutter the panel
+    is sheared by its own motion as well as the camera's). The camera and its ground truth are
+    the bag's without movers."""
+    base = dict(frames=40, motion="walk", severity=1.0, width=320, height=180, seed=5,
+                line_delay=line_delay)
+    plain = SequenceRenderer(SynthConfig(**base))
+    moving = SequenceRenderer(SynthConfig(**base, movers=1))
+    (mover,) = moving.movers
+    assert np.linalg.norm(mover.velocity) >= 1.0  # crossing at walking speed
+    # as fast as a passing car (8 m/s), so that its own motion during the readout shows
+    mover = dataclasses.replace(mover, velocity=mover.velocity * 8.0
+                                / np.linalg.norm(mover.velocity))  # fmt: skip
+    moving.movers = [mover]
+    k = int(round(mover.t0 * moving.config.rate_hz))  # it is in front of the camera then
+    a, b = plain.render(k), moving.render(k)
+    assert np.array_equal(a.pose(), b.pose()) and np.array_equal(a.w, b.w)
+    changed = np.abs(a.image.astype(int) - b.image.astype(int)) > 0
+    rows = np.flatnonzero(changed.sum(axis=1) >= 6)
+    assert len(rows) > 40, "the mover is not in view"
+    K = moving.K
+    errors = []
+    for r in rows[5:-5:4]:
+        R, p = b.row_pose(np.array([float(r)]))
+        centre = mover.centres(np.array([b.stamp + r * moving.config.tau]))[0]
+        line = centre + np.linspace(-mover.half_height, mover.half_height, 2001)[:, None] \
+            * np.array([0.0, 1.0, 0.0])  # fmt: skip
+        Xc = (line - p[0]) @ R[0]
+        uv = (Xc @ K.T)[:, :2] / Xc[:, 2:3]
+        x_line = uv[np.argmin(np.abs(uv[:, 1] - r)), 0]
+        cols = np.flatnonzero(changed[r])
+        errors.append(0.5 * (cols.min() + cols.max()) - x_line)
+    assert np.max(np.abs(errors)) < 1.5, errors
+    with pytest.raises(ValueError, match="movers"):
+        SynthConfig(movers=-1)
+    with pytest.raises(ValueError, match="paper motion"):
+        SynthConfig(motion="paper", movers=1)
+
+
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
 def test_bag_round_trip(tmp_path, storage):
     cfg = SynthConfig(frames=4, motion="vehicle", width=96, height=54, seed=2)
@@ -317,6 +359,14 @@ def test_cli_refuses_to_overwrite_and_validates(tmp_path, capsys):
         stamps = [t for c, t, _ in reader.messages() if c.topic == bagio.IMAGE_TOPIC]
     assert np.diff(stamps).tolist() == [66_666_667, 66_666_666]
     assert bagio.custom_data(slow)["rsvo.frame_rate"] == "15"
+    assert bagio.custom_data(slow)["rsvo.movers"] == "0"
+    people = tmp_path / "people"
+    assert synth_main([str(people), "--frames", "2", "--resolution", "64x36", "--movers", "2",
+                       "--motion", "walk", "--no-progress"]) == 0
+    assert bagio.custom_data(people)["rsvo.movers"] == "2"
+    assert synth_main([str(tmp_path / "p2"), "--movers", "1", "--motion", "paper",
+                       "--no-progress"]) == 2
+    assert "paper motion has none" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         synth_main([str(tmp_path / "d"), "--resolution", "big"])
 
