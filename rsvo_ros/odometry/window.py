@@ -74,6 +74,12 @@ class WindowOptions:
     # started their maps from pairs of 1.6 and 3.3 deg and stayed off for 20 frames; good
     # starts had 0.1-0.6 deg (README) (0: no check)
     init_max_rotation_std_deg: float = 1.0
+    # ... and, where the pairwise chain posed the frames meanwhile (the map's first start), a
+    # pair whose rotation is within this of the chain's between the same two frames: people
+    # walking in front of the camera let the pair estimator settle on a motion several
+    # degrees off that its own covariance does not flag (README, "People walking in front of
+    # the camera"; the RS model with a line delay only) (0: no check)
+    init_max_chain_rotation_deg: float = 3.0
     keyframe_parallax_px: float = 25.0  # ... since the last keyframe that makes a keyframe
     keyframe_track_ratio: float = 0.7  # map points tracked vs at the last keyframe
     keyframe_max_interval_s: float = 0.4
@@ -445,11 +451,27 @@ class WindowOdometry:
         if self._origin is None and res.rotation_std_deg > max_std > 0 and par_t < 2 * need:
             why = f"the pair's rotation is uncertain ({res.rotation_std_deg:.1f} deg std)"
             return WindowResult("held", f"initialising: {why}", ref.state)
+        h_ref, h_cur = self._hints.get(ref.state.stamp_ns), self._hints.get(stamp_ns)
+        hinted = h_ref is not None and h_cur is not None
+        max_off = self.options.init_max_chain_rotation_deg
+        # (the RS model with a line delay only: a GS pair and a GS chain of a rolling-shutter
+        # camera disagree by its distortion itself; held there, the GS vehicles' first map
+        # waited for seconds, and so did the RS model's with a line delay of 0)
+        if self.model == "rs" and self.line_delay > 0 and self._origin is None and hinted \
+                and max_off > 0:  # fmt: skip
+            # the chain's rotation between the two frames' reference-row cameras (its row-0
+            # poses turned by the pair's rates), X_cur = R X_ref, as the pair's
+            s0 = self.row0_time()
+            R_a = h_ref[:3, :3] @ so3_exp(-s0 * res.vel_prev[0])
+            R_b = h_cur[:3, :3] @ so3_exp(-s0 * res.vel_curr[0])
+            R_chain = R_b.T @ R_a
+            off = float(np.degrees(np.linalg.norm(so3_log(R_chain.T @ res.R))))
+            if off > max_off:
+                return WindowResult("held", f"initialising: the pair's rotation is {off:.1f} deg "
+                                            "from the chain's", ref.state)  # fmt: skip
         scale = self.initial_scale
         if self._origin is not None and np.linalg.norm(self._origin.v) > 0:
             scale = float(np.linalg.norm(self._origin.v)) * dt  # keep the speed across a loss
-        h_ref, h_cur = self._hints.get(ref.state.stamp_ns), self._hints.get(stamp_ns)
-        hinted = h_ref is not None and h_cur is not None
         if hinted:
             baseline = float(np.linalg.norm(h_cur[:3, 3] - h_ref[:3, 3]))
             if baseline > 0:

@@ -6,8 +6,8 @@ For each case a sharp 30 Hz bag is written with 0, 2 and 4 people (``rsvo_synth 
 --frames 90 --motion M --seed K``: pedestrian-sized textured panels 3-6 m in front of the
 camera, crossing the view or walking along it; the bag without people is the same bag
 otherwise) and replayed with the defaults (window backend), RS and GS. Seeds 820-822 were
-looked at (the tracking and map thresholds were tried on them, not changed), 823-825 were
-written afterwards. Writes ``movers.md`` (per bag and per group), ``movers.json`` and
+looked at (the window's first-map check against the bootstrap chain was found on them), 823-825
+were written afterwards. Writes ``movers.md`` (per bag and per group), ``movers.json`` and
 ``movers.png`` (ATE with people against ATE without, per motion) into OUT.
 """
 
