@@ -209,6 +209,8 @@ class RsvoNode(Node):
 
     def _check_parameter_change(self, params: list) -> SetParametersResult:
         for param in params:
+            if param.name not in PARAMETERS:
+                continue  # rclpy's own (use_sim_time): its own rules
             reason = check_live_change(param.name, param.value)
             if reason:
                 return SetParametersResult(successful=False, reason=reason)
@@ -216,6 +218,8 @@ class RsvoNode(Node):
 
     def _apply_parameter_change(self, params: list) -> None:
         for param in params:
+            if param.name not in PARAMETERS:
+                continue
             old = self.p.values[param.name]
             self.p.values[param.name] = param.value
             if param.name == "diagnostics_period_s":

@@ -364,6 +364,9 @@ def test_a_running_node_takes_its_live_parameters_and_refuses_the_others(ros_con
         assert not out_of_range.successful
         assert _set_parameter(h, "diagnostics_period_s", 0.5).successful
         assert h.node._diag_timer.timer_period_ns == 500_000_000
+        # rclpy's own parameter keeps its own rules: use_sim_time can be switched
+        assert _set_parameter(h, "use_sim_time", True).successful
+        assert _set_parameter(h, "use_sim_time", False).successful
         assert _set_parameter(h, "publish_debug_image", True).successful
         assert h.node.p["publish_debug_image"] is True
         h.feed(info, msgs[3:])
