@@ -21,26 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
-from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.sim.synth import SynthConfig
-from rsvo_ros.tools.replay import ReplayConfig, replay
+from rsvo_ros.tools.rate_table import MOTION_COLOURS, fmt, gmean, ratio, replay_row
 from rsvo_ros.tools.synth_bag import write_bag
 
 MOVERS = (0, 2, 4)
 CASES = [(m, 1.0, seed, group) for m in ("walk", "handheld", "vehicle")
          for seed, group in ((820, "looked at"), (821, "looked at"), (822, "looked at"),
                              (823, "fresh"), (824, "fresh"), (825, "fresh"))]
-
-
-def _replay(bag: Path, out: Path, model: str) -> dict:
-    s = replay(ReplayConfig(bag, out, model=model, overwrite=True, progress=False,
-                            options=PipelineOptions(model=model)))
-    acc = s.get("accuracy") or {}
-    return {"ate_m": (acc.get("ate_m") or {}).get("rmse"),
-            "rpe_rot_deg": (acc.get("rpe_rot_deg") or {}).get("rmse"),
-            "scale_drift": (acc.get("scale_drift") or {}).get("ratio"),
-            "posed": s["frames_posed"], "held": s["frames_held"], "frames": s["frames_in"],
-            "inlier_ratio": s["inlier_ratio_mean"]}
 
 
 def run_case(out: Path, motion: str, severity: float, seed: int, group: str, movers: int,
@@ -52,21 +40,8 @@ def run_case(out: Path, motion: str, severity: float, seed: int, group: str, mov
                                    movers=movers), overwrite=True, progress=False)
     return {"case": bag.name, "motion": motion, "severity": severity, "seed": seed,
             "group": group, "movers": movers,
-            "rs": _replay(bag, out / f"{bag.name}__rs", "rs"),
-            "gs": _replay(bag, out / f"{bag.name}__gs", "gs")}
-
-
-def _ratio(a, b):
-    return None if a is None or b is None or b <= 0 else a / b
-
-
-def _f(x, fmt: str) -> str:
-    return "-" if x is None else format(x, fmt)
-
-
-def _gmean(values) -> float | None:
-    v = [x for x in values if x is not None and x > 0]
-    return float(np.exp(np.mean(np.log(v)))) if v else None
+            "rs": replay_row(bag, out / f"{bag.name}__rs", "rs"),
+            "gs": replay_row(bag, out / f"{bag.name}__gs", "gs")}
 
 
 def _without(rows: list[dict], r: dict) -> dict | None:
@@ -82,12 +57,12 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         rs, gs = r["rs"], r["gs"]
         base = _without(rows, r)
-        rel = None if base is None else _ratio(rs["ate_m"], base["rs"]["ate_m"])
+        rel = None if base is None else ratio(rs["ate_m"], base["rs"]["ate_m"])
         lines.append(
             f"| {r['motion']} sev. {r['severity']:g}, seed {r['seed']} ({r['group']}) | "
-            f"{r['movers']} | {_f(rs['ate_m'], '.3f')} m | {_f(gs['ate_m'], '.3f')} m | "
-            f"{_f(_ratio(rs['ate_m'], gs['ate_m']), '.2f')} | {_f(rel, '.2f')} | "
-            f"{_f(rs['rpe_rot_deg'], '.3f')} deg | {_f(rs['inlier_ratio'], '.2f')} | "
+            f"{r['movers']} | {fmt(rs['ate_m'], '.3f')} m | {fmt(gs['ate_m'], '.3f')} m | "
+            f"{fmt(ratio(rs['ate_m'], gs['ate_m']), '.2f')} | {fmt(rel, '.2f')} | "
+            f"{fmt(rs['rpe_rot_deg'], '.3f')} deg | {fmt(rs['inlier_ratio'], '.2f')} | "
             f"{rs['posed']} ({rs['held']}) of {rs['frames']} |")
     return "\n".join(lines)
 
@@ -103,15 +78,15 @@ def summary(rows: list[dict]) -> str:
                       and r["movers"] == n]  # fmt: skip
                 if not rs:
                     continue
-                rel = [_ratio(r["rs"]["ate_m"], (_without(rows, r) or {"rs": {}})["rs"]
+                rel = [ratio(r["rs"]["ate_m"], (_without(rows, r) or {"rs": {}})["rs"]
                               .get("ate_m")) for r in rs]  # fmt: skip
-                vs = [_ratio(r["rs"]["ate_m"], r["gs"]["ate_m"]) for r in rs]
+                vs = [ratio(r["rs"]["ate_m"], r["gs"]["ate_m"]) for r in rs]
                 known = [x for x in vs if x is not None]
                 out.append(
                     f"- {group}, {motion}, {n} people ({len(rs)} bags): RS ATE "
-                    f"{_f(_gmean(r['rs']['ate_m'] for r in rs), '.3f')} m in geometric mean"
-                    + ("" if n == 0 else f", {_f(_gmean(rel), '.2f')}x the same bags without")
-                    + f"; RS / GS {_f(_gmean(vs), '.2f')} (RS better on "
+                    f"{fmt(gmean(r['rs']['ate_m'] for r in rs), '.3f')} m in geometric mean"
+                    + ("" if n == 0 else f", {fmt(gmean(rel), '.2f')}x the same bags without")
+                    + f"; RS / GS {fmt(gmean(vs), '.2f')} (RS better on "
                     f"{sum(x < 1 for x in known)} of {len(known)})")
     return "\n".join(out)
 
@@ -124,9 +99,8 @@ def plot(path: Path, rows: list[dict]) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-    colours = {"walk": "tab:blue", "handheld": "tab:orange", "vehicle": "tab:green"}
-    jitter = {m: (i - 1) * 0.12 for i, m in enumerate(colours)}
-    for motion, colour in colours.items():
+    jitter = {m: (i - 1) * 0.12 for i, m in enumerate(MOTION_COLOURS)}
+    for motion, colour in MOTION_COLOURS.items():
         for which, ax in (("rs", axes[0]), ("gs", axes[1])):
             pts = [(r["movers"] + jitter[motion], r[which]["ate_m"]) for r in rows
                    if r["motion"] == motion and r[which]["ate_m"] is not None]  # fmt: skip
@@ -171,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         for k, row in enumerate(pool.imap(_run_case, jobs), 1):
             rows.append(row)
             print(f"[movers_table {k}/{len(jobs)}] {row['case']}: RS ATE "
-                  f"{_f(row['rs']['ate_m'], '.3f')} m, GS {_f(row['gs']['ate_m'], '.3f')} m",
+                  f"{fmt(row['rs']['ate_m'], '.3f')} m, GS {fmt(row['gs']['ate_m'], '.3f')} m",
                   flush=True)
     (args.out / "movers.json").write_text(json.dumps(rows, indent=1))
     (args.out / "movers.md").write_text(table(rows) + "\n\n" + summary(rows) + "\n")

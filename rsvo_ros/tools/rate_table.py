@@ -28,16 +28,21 @@ from rsvo_ros.tools.synth_bag import write_bag
 
 RATES_HZ = (10.0, 15.0, 30.0, 60.0)
 LINE_DELAY_S = 4e-5  # 14.4 ms at 360 rows: under one frame interval at 60 Hz
+MOTION_COLOURS = {"walk": "tab:blue", "handheld": "tab:orange", "vehicle": "tab:green"}
 CASES = [(m, 1.0, seed) for m in ("walk", "handheld", "vehicle") for seed in (810, 811, 812)]
 
 
-def _replay(bag: Path, out: Path, model: str, auto: bool = False) -> dict:
+def replay_row(bag: Path, out: Path, model: str, auto: bool = False) -> dict:
+    """Replay ``bag`` with the defaults (``model``; ``auto``: line delay auto, the online pass)
+    and return the row's accuracy and frame counts (also used by ``movers_table``)."""
     s = replay(ReplayConfig(bag, out, model=model, overwrite=True, progress=False,
                             options=PipelineOptions(model=model, line_delay_auto=auto)))
     acc = s.get("accuracy") or {}
     row = {"ate_m": (acc.get("ate_m") or {}).get("rmse"),
            "rpe_rot_deg": (acc.get("rpe_rot_deg") or {}).get("rmse"),
-           "posed": s["frames_posed"], "held": s["frames_held"], "frames": s["frames_in"]}
+           "scale_drift": (acc.get("scale_drift") or {}).get("ratio"),
+           "posed": s["frames_posed"], "held": s["frames_held"], "frames": s["frames_in"],
+           "inlier_ratio": s["inlier_ratio_mean"]}
     if auto:
         est = s["line_delay_auto"]
         row.update(status=est["status"], line_delay_s=est.get("line_delay_s"),
@@ -56,17 +61,19 @@ def run_case(out: Path, motion: str, severity: float, seed: int, rate: float,
                   overwrite=True, progress=False)  # fmt: skip
     return {"case": bag.name, "motion": motion, "severity": severity, "seed": seed,
             "rate_hz": rate, "frames": frames,
-            "rs": _replay(bag, out / f"{bag.name}__rs", "rs"),
-            "gs": _replay(bag, out / f"{bag.name}__gs", "gs"),
-            "auto": _replay(bag, out / f"{bag.name}__auto", "rs", auto=True)}
+            "rs": replay_row(bag, out / f"{bag.name}__rs", "rs"),
+            "gs": replay_row(bag, out / f"{bag.name}__gs", "gs"),
+            "auto": replay_row(bag, out / f"{bag.name}__auto", "rs", auto=True)}
 
 
-def _ratio(a, b):
+def ratio(a, b):
+    """``a / b``, None where either is missing or ``b`` is not positive."""
     return None if a is None or b is None or b <= 0 else a / b
 
 
-def _f(x, fmt: str) -> str:
-    return "-" if x is None else format(x, fmt)
+def fmt(x, spec: str) -> str:
+    """``x`` formatted, ``-`` for None."""
+    return "-" if x is None else format(x, spec)
 
 
 def table(rows: list[dict]) -> str:
@@ -80,14 +87,15 @@ def table(rows: list[dict]) -> str:
             f"{est * 1e6:.1f} us/row ({100 * (est / LINE_DELAY_S - 1):+.0f} %)"
         lines.append(
             f"| {r['motion']} sev. {r['severity']:g}, seed {r['seed']} | {r['rate_hz']:g} Hz | "
-            f"{rs['posed']} ({rs['held']}) of {rs['frames']} | {_f(rs['ate_m'], '.3f')} m | "
-            f"{_f(gs['ate_m'], '.3f')} m | {_f(_ratio(rs['ate_m'], gs['ate_m']), '.2f')} | "
-            f"{_f(rs['rpe_rot_deg'], '.3f')} / {_f(gs['rpe_rot_deg'], '.3f')} deg | {est_text} | "
-            f"{_f(_ratio(auto['ate_m'], rs['ate_m']), '.2f')} |")
+            f"{rs['posed']} ({rs['held']}) of {rs['frames']} | {fmt(rs['ate_m'], '.3f')} m | "
+            f"{fmt(gs['ate_m'], '.3f')} m | {fmt(ratio(rs['ate_m'], gs['ate_m']), '.2f')} | "
+            f"{fmt(rs['rpe_rot_deg'], '.3f')} / {fmt(gs['rpe_rot_deg'], '.3f')} deg | "
+            f"{est_text} | {fmt(ratio(auto['ate_m'], rs['ate_m']), '.2f')} |")
     return "\n".join(lines)
 
 
-def _gmean(values) -> float | None:
+def gmean(values) -> float | None:
+    """The geometric mean of the positive values (None missing); None without any."""
     v = [x for x in values if x is not None and x > 0]
     return float(np.exp(np.mean(np.log(v)))) if v else None
 
@@ -98,22 +106,22 @@ def summary(rows: list[dict]) -> str:
     out = []
     for rate in dict.fromkeys(r["rate_hz"] for r in rows):
         rs = [r for r in rows if r["rate_hz"] == rate]
-        ratios = [_ratio(r["rs"]["ate_m"], r["gs"]["ate_m"]) for r in rs]
+        ratios = [ratio(r["rs"]["ate_m"], r["gs"]["ate_m"]) for r in rs]
         known = [x for x in ratios if x is not None]
         posed = sum(r["rs"]["posed"] for r in rs)
         frames = sum(r["rs"]["frames"] for r in rs)
         est = [r["auto"].get("line_delay_s") for r in rs]
         within = sum(e is not None and abs(e / LINE_DELAY_S - 1) <= 0.1 for e in est)
-        auto_ok = sum((x := _ratio(r["auto"]["ate_m"], r["rs"]["ate_m"])) is not None
+        auto_ok = sum((x := ratio(r["auto"]["ate_m"], r["rs"]["ate_m"])) is not None
                       and x <= 1.1 for r in rs)  # fmt: skip
-        gm = _gmean(ratios)
+        gm = gmean(ratios)
         lo, hi = (min(known), max(known)) if known else (None, None)
         out.append(
-            f"- {rate:g} Hz ({len(rs)} bags): RS / GS ATE {_f(gm, '.2f')} in geometric mean "
-            f"({_f(lo, '.2f')}-{_f(hi, '.2f')}; RS better on {sum(x < 1 for x in known)}), "
+            f"- {rate:g} Hz ({len(rs)} bags): RS / GS ATE {fmt(gm, '.2f')} in geometric mean "
+            f"({fmt(lo, '.2f')}-{fmt(hi, '.2f')}; RS better on {sum(x < 1 for x in known)}), "
             f"frames posed {posed} of {frames}, RS rotation error per frame "
-            f"{_f(_gmean(r['rs']['rpe_rot_deg'] for r in rs), '.3f')} deg (GS "
-            f"{_f(_gmean(r['gs']['rpe_rot_deg'] for r in rs), '.3f')}); line delay "
+            f"{fmt(gmean(r['rs']['rpe_rot_deg'] for r in rs), '.3f')} deg (GS "
+            f"{fmt(gmean(r['gs']['rpe_rot_deg'] for r in rs), '.3f')}); line delay "
             f"auto within 10 % on {within}, its ATE within 10 % of the true line delay's on "
             f"{auto_ok}")
     return "\n".join(out)
@@ -127,14 +135,14 @@ def plot(path: Path, rows: list[dict]) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-    colours = {"walk": "tab:blue", "handheld": "tab:orange", "vehicle": "tab:green"}
-    for motion, colour in colours.items():
+    for motion, colour in MOTION_COLOURS.items():
         rs = [r for r in rows if r["motion"] == motion]
         if not rs:
             continue
         x = np.array([r["rate_hz"] for r in rs])
-        ratio = np.array([_ratio(r["rs"]["ate_m"], r["gs"]["ate_m"]) or np.nan for r in rs])
-        axes[0].plot(x * np.exp(np.random.default_rng(0).uniform(-0.04, 0.04, len(x))), ratio,
+        rs_over_gs = np.array([ratio(r["rs"]["ate_m"], r["gs"]["ate_m"]) or np.nan
+                               for r in rs])
+        axes[0].plot(x * np.exp(np.random.default_rng(0).uniform(-0.04, 0.04, len(x))), rs_over_gs,
                      "o", color=colour, mfc="none", label=motion)
         for which, marker in (("rs", "o"), ("gs", "x")):
             axes[1].plot(x, [r[which]["rpe_rot_deg"] or np.nan for r in rs], marker,
@@ -177,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         for k, row in enumerate(pool.imap(_run_case, jobs), 1):
             rows.append(row)
             print(f"[rate_table {k}/{len(jobs)}] {row['case']}: RS / GS ATE "
-                  f"{_f(_ratio(row['rs']['ate_m'], row['gs']['ate_m']), '.2f')}", flush=True)
+                  f"{fmt(ratio(row['rs']['ate_m'], row['gs']['ate_m']), '.2f')}", flush=True)
     (args.out / "rate.json").write_text(json.dumps(rows, indent=1))
     (args.out / "rate.md").write_text(table(rows) + "\n\n" + summary(rows) + "\n")
     plot(args.out / "rate.png", rows)
