@@ -24,7 +24,7 @@ Conventions: world frame y down (the loop lies in x-z), camera optical frame, po
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -101,6 +101,10 @@ def make_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarr
 
 
 MOVER_TEXTURE = 4  # the surface index of the movers (the corridor's are 0-3)
+# how close (m, centre to camera, horizontal) a mover's path may come to the camera's over the
+# sequence: people step aside for a walker and keep off a car's path; without it a car drove
+# through the people in front of it and the panel filled the whole view
+MOVER_CLEARANCE_M = {"walk": 1.0, "handheld": 1.0, "vehicle": 2.0}
 
 
 @dataclass
@@ -595,9 +599,28 @@ class SequenceRenderer:
                 velocity = rng.choice([-1.0, 1.0]) * rng.uniform(1.0, 1.6) * right
             else:
                 velocity = rng.choice([-1.0, 1.0]) * rng.uniform(0.8, 1.5) * forward
-            movers.append(Mover(centre, float(t0), velocity, -forward, 0.35, half_height,
-                                texture_offset=2.0 * i))  # fmt: skip
+            mover = Mover(centre, float(t0), velocity, -forward, 0.35, half_height,
+                          texture_offset=2.0 * i)  # fmt: skip
+            movers.append(self._keep_clear(mover, right, duration))
         return movers
+
+    def _keep_clear(self, mover: Mover, right: np.ndarray, duration: float) -> Mover:
+        """``mover`` shifted sideways (along ``right``, the camera's horizontal x at its ``t0``)
+        by the least distance that keeps its path ``MOVER_CLEARANCE_M`` from the camera's
+        over the sequence (a crossing person then crosses earlier or later); unchanged when it
+        is clear already. Deterministic, no random draws: a bag whose people were clear is the
+        same bag."""
+        clearance = MOVER_CLEARANCE_M[self.config.motion]
+        times = np.linspace(0.0, duration, max(2, int(np.ceil(duration * 100.0)) + 1))
+        offsets = (mover.centres(times) - self._traj.pose(times)[1])[:, [0, 2]]
+        side = right[[0, 2]]
+        if np.min(np.linalg.norm(offsets, axis=1)) >= clearance:
+            return mover
+        for step in sorted(range(-160, 161), key=lambda k: (abs(k), k)):  # 5 cm steps, 8 m
+            shift = 0.05 * step
+            if np.min(np.linalg.norm(offsets + shift * side, axis=1)) >= clearance:
+                return replace(mover, centre0=mover.centre0 + shift * right)
+        return mover
 
     @property
     def trajectory(self) -> ContinuousTrajectory | WalkTrajectory | None:

@@ -14,6 +14,7 @@ from rosbags.rosbag2 import Reader
 from rsvo_ros.core.geometry import so3_exp, so3_log
 from rsvo_ros.ros import bagio, convert
 from rsvo_ros.sim.synth import (
+    MOVER_CLEARANCE_M,
     TEXELS_PER_M,
     TEXTURE_SIZE,
     CorridorScene,
@@ -293,6 +294,40 @@ def test_movers_are_drawn_where_each_row_sees_them(line_delay):
         SynthConfig(movers=-1)
     with pytest.raises(ValueError, match="paper motion"):
         SynthConfig(motion="paper", movers=1)
+
+
+def test_movers_keep_clear_of_the_camera():
+    """People are placed 3-6 m ahead of the camera; a car reaches them in under a second.
+    Their paths keep MOVER_CLEARANCE_M from the camera's over the whole sequence (a car no
+    longer drives through a person whose panel then fills the view), and a person already
+    clear is where the draw put them (a walk's bag is the same bag as before the rule)."""
+    for motion in ("vehicle", "handheld"):
+        for seed in (820, 822):
+            cfg = SynthConfig(frames=90, motion=motion, severity=1.0, seed=seed, movers=4)
+            r = SequenceRenderer(cfg)
+            t = np.linspace(0.0, cfg.frames / cfg.rate_hz, 901)
+            p_cam = r.trajectory.pose(t)[1]
+            for mover in r.movers:
+                gap = np.linalg.norm((mover.centres(t) - p_cam)[:, [0, 2]], axis=1)
+                assert gap.min() >= MOVER_CLEARANCE_M[motion] - 1e-9, (motion, seed, gap.min())
+                # still in front of the camera at its own time, as drawn
+                R, p = r.trajectory.pose(np.array([mover.t0]))
+                ahead = (mover.centres(np.array([mover.t0]))[0] - p[0]) @ R[0][:, 2]
+                assert 2.5 < ahead < 6.5, (motion, seed, ahead)
+    # the draws of a walk whose people were clear are unchanged: 3-6 m ahead, within 0.5 m
+    # of the camera's heading at t0 (the shifted vehicles' people are up to metres aside)
+    r = SequenceRenderer(SynthConfig(frames=90, motion="walk", severity=1.0, seed=821, movers=2))
+    for mover in r.movers:
+        R, p = r.trajectory.pose(np.array([mover.t0]))
+        aside = (mover.centres(np.array([mover.t0]))[0] - p[0]) @ R[0][:, 0]
+        assert abs(aside) <= 0.55
+    shifted = SequenceRenderer(SynthConfig(frames=90, motion="vehicle", severity=1.0, seed=822,
+                                           movers=2))  # fmt: skip
+    asides = []
+    for mover in shifted.movers:
+        R, p = shifted.trajectory.pose(np.array([mover.t0]))
+        asides.append(abs((mover.centres(np.array([mover.t0]))[0] - p[0]) @ R[0][:, 0]))
+    assert max(asides) > 1.0
 
 
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
