@@ -581,7 +581,8 @@ class SequenceRenderer:
         """``config.movers`` people, each in front of the camera (3-6 m ahead) at a time of
         its own spread over the sequence: alternately crossing the view (1.0-1.6 m/s across
         the camera's heading) and walking along it (towards or away, 0.8-1.5 m/s), facing the
-        camera (from their own seed: the bag without movers is the same bag)."""
+        camera (from their own seed: the bag without movers is the same bag), and kept
+        ``MOVER_CLEARANCE_M`` from the camera's path (:meth:`_keep_clear`)."""
         cfg = self.config
         rng = np.random.default_rng([cfg.seed, 23])
         duration = cfg.frames / cfg.rate_hz
@@ -608,8 +609,8 @@ class SequenceRenderer:
         """``mover`` shifted sideways (along ``right``, the camera's horizontal x at its ``t0``)
         by the least distance that keeps its path ``MOVER_CLEARANCE_M`` from the camera's
         over the sequence (a crossing person then crosses earlier or later); unchanged when it
-        is clear already. Deterministic, no random draws: a bag whose people were clear is the
-        same bag."""
+        is clear already, or where no shift within 8 m clears it. Deterministic, no random
+        draws: a bag whose people were clear is the same bag."""
         clearance = MOVER_CLEARANCE_M[self.config.motion]
         times = np.linspace(0.0, duration, max(2, int(np.ceil(duration * 100.0)) + 1))
         offsets = (mover.centres(times) - self._traj.pose(times)[1])[:, [0, 2]]

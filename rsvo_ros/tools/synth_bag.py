@@ -144,7 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--movers", type=int, default=0, metavar="N",
                    help="handheld / vehicle / walk: N people (pedestrian-sized textured "
                         "panels) crossing or walking along in front of the camera, spread over "
-                        "the sequence: points that move on their own (default 0)")
+                        "the sequence, never within 1 m (vehicles 2 m) of the camera's path: "
+                        "points that move on their own (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
