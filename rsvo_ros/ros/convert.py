@@ -124,6 +124,21 @@ class CameraIntrinsics:
     # sensor rows per image row (CameraInfo's binning_y; 1 without binning): the line delay is
     # per image row, so a binned camera's is this many times the sensor's row time
     binning_y: int = 1
+    # K is assumed (an uncalibrated camera info and ``uncalibrated_focal_factor``), not measured
+    assumed: bool = False
+
+
+UNCALIBRATED_HINT = ("calibrate the camera (camera_calibration), or set "
+                     "uncalibrated_focal_factor (rsvo_replay: --uncalibrated-focal-factor) to "
+                     "assume a focal length of that many image widths, e.g. 1.0")
+
+
+def assumed_intrinsics(width: int, height: int, focal_factor: float) -> np.ndarray:
+    """The K (3, 3) assumed for an uncalibrated camera: focal length ``focal_factor`` image
+    widths (a fair guess for phones, webcams and dash cams: 0.7-1.2), square pixels, the
+    principal point at the image centre."""
+    f = float(focal_factor) * width
+    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
 def _info_field(msg, name: str):
@@ -132,21 +147,35 @@ def _info_field(msg, name: str):
     return getattr(msg, name) if hasattr(msg, name) else getattr(msg, name.upper())
 
 
-def camera_from_info(msg, rectified: bool = False) -> CameraIntrinsics:
+def camera_from_info(msg, rectified: bool = False,
+                     uncalibrated_focal_factor: float = 0.0) -> CameraIntrinsics:  # fmt: skip
     """:class:`CameraIntrinsics` of a sensor_msgs/CameraInfo (rclpy or rosbags).
 
     ``rectified``: the images are already rectified (image_proc's ``image_rect``): the
     intrinsics are the projection ``P``'s left 3x3 and there is no lens to undo.
+    ``uncalibrated_focal_factor`` > 0: a camera info whose K (or P) is all zero, as camera
+    drivers publish without a calibration file, gives :func:`assumed_intrinsics` for its
+    size (no lens; ``assumed`` set) instead of an error.
 
-    Raises ValueError for a non-finite or non-positive focal length, and for a distortion
-    model other than ``plumb_bob``, ``rational_polynomial`` or ``equidistant`` (or none) or
-    the wrong number of coefficients for it.
+    Raises ValueError for a non-finite or non-positive focal length (an uncalibrated camera
+    info says so and how to go on), and for a distortion model other than ``plumb_bob``,
+    ``rational_polynomial`` or ``equidistant`` (or none) or the wrong number of coefficients
+    for it.
     """
     if rectified:
         K, matrix = np.asarray(_info_field(msg, "p"), float).reshape(3, 4)[:, :3].copy(), \
             "P for rectified images"
     else:
         K, matrix = np.asarray(_info_field(msg, "k"), float).reshape(3, 3), "K"
+    if np.isfinite(K).all() and not K.any():  # no calibration (a driver without its file)
+        width, height = int(msg.width), int(msg.height)
+        if uncalibrated_focal_factor <= 0 or width <= 0 or height <= 0:
+            raise ValueError(f"camera info is uncalibrated ({matrix} all zero"
+                             f"{'' if width > 0 and height > 0 else ', no image size'}): "
+                             f"{UNCALIBRATED_HINT}")
+        K, width, height, binning_y = _binned_roi(
+            msg, assumed_intrinsics(width, height, uncalibrated_focal_factor))
+        return CameraIntrinsics(K, None, width, height, binning_y, assumed=True)
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError(f"camera info with an invalid {matrix} (non-finite or non-positive "
                          "focal length)")

@@ -160,6 +160,7 @@ class RsvoNode(Node):
             JumpThreshold(min_forward=None, min_backward=Duration(seconds=-0.5),
                           on_clock_change=True), post_callback=self._on_clock_jump)
         self.sub_info = None
+        self._intrinsics = "none yet" if self.p.camera is None else "camera_file"
         if self.p.camera is None:
             self.sub_info = self.create_subscription(CameraInfo, self.p["camera_info_topic"],
                                                      self._on_info, qos_profile_sensor_data)
@@ -233,10 +234,18 @@ class RsvoNode(Node):
 
     def _on_info(self, msg: CameraInfo) -> None:
         try:
-            cam = camera_from_info(msg, bool(self.p["image_rectified"]))
+            cam = camera_from_info(msg, bool(self.p["image_rectified"]),
+                                   float(self.p["uncalibrated_focal_factor"]))
         except ValueError as exc:
             self._bad(str(exc))
             return
+        if cam.assumed and self._camera is None:
+            self.get_logger().warning(
+                f"camera info is uncalibrated (all zero): assuming a pinhole camera of focal "
+                f"length {cam.K[0, 0]:.1f} px (uncalibrated_focal_factor "
+                f"{self.p['uncalibrated_focal_factor']:g} x {cam.width} px), principal point at "
+                f"the centre, no lens distortion; calibrate the camera for accurate odometry")
+        self._intrinsics = "assumed" if cam.assumed else "camera info"
         if cam.binning_y > 1 and self._camera is None:
             self.get_logger().info(
                 f"camera info: binning {cam.binning_y} rows, images {cam.width}x{cam.height} "
@@ -531,6 +540,8 @@ class RsvoNode(Node):
             # image); whether the last odometry carried a twist (measured) or none (1e6)
             "camera_frame": self.camera_frame,
             "twist": "measured" if self._twist_known else "none",
+            # where K comes from: camera info, camera_file, assumed (uncalibrated) or none yet
+            "intrinsics": self._intrinsics,
             **self._line_delay_diagnostics(),
         }  # fmt: skip
 

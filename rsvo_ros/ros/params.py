@@ -83,6 +83,13 @@ PARAMETERS = {
     "camera_file_entry": ("", _str(
         "camera_file is a Kalibr camchain of several cameras: the entry to use (cam0, cam1, "
         "...); '' (default): the only one, or cam0.")),
+    "uncalibrated_focal_factor": (0.0, _float(
+        "A camera info without calibration (K all zero, as drivers publish without a "
+        "calibration file): > 0 assumes a pinhole camera of focal length this many image widths "
+        "(0.7-1.2 for most phones, webcams and dash cams), principal point at the centre, no "
+        "lens distortion, with a warning (diagnostics intrinsics: assumed); odometry from a "
+        "guessed focal length is approximate, calibrate for accuracy. 0 (default): such camera "
+        "infos are refused and counted as bad.", 0.0, 10.0)),
     "odom_topic": ("rsvo/odom", _str("Output nav_msgs/Odometry topic.")),
     "path_topic": ("rsvo/path", _str("Output nav_msgs/Path topic.")),
     "debug_image_topic": ("rsvo/debug_image", _str("Output debug image (tracks, inliers).")),

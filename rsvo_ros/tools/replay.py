@@ -105,6 +105,9 @@ class ReplayConfig:
     camera_entry: str | None = None  # the Kalibr camchain's entry (cam0, cam1, ...)
     rectified: bool = False  # rectified images: CameraInfo's P, no lens
     debug_video: Path | None = None  # an MP4 of every processed frame with its tracks drawn
+    # > 0: a camera info without calibration (K all zero) gets a pinhole of this many image
+    # widths as focal length (ros.convert.assumed_intrinsics); 0: refused
+    uncalibrated_focal_factor: float = 0.0
 
 
 def _odometry(res: FrameResult):
@@ -294,10 +297,16 @@ def replay(cfg: ReplayConfig) -> dict:
     for c_info, _t, raw in reader.messages(connections=[topics[info_topic]] if info_topic
                                            else []):  # fmt: skip
         try:
-            camera = camera_from_info(reader.deserialize(raw, c_info.msgtype), cfg.rectified)
+            camera = camera_from_info(reader.deserialize(raw, c_info.msgtype), cfg.rectified,
+                                      cfg.uncalibrated_focal_factor)  # fmt: skip
             break
         except Exception:  # noqa: BLE001 - a bad one is skipped, the next one may do
             continue
+    if camera is not None and camera.assumed:
+        print(f"rsvo_replay: the camera info is uncalibrated (all zero): assuming a pinhole "
+              f"camera of focal length {camera.K[0, 0]:.1f} px ({cfg.uncalibrated_focal_factor:g} "
+              f"x {camera.width} px), principal point at the centre, no lens distortion; "
+              f"calibrate the camera for accurate odometry", flush=True)
     if camera is not None and camera.binning_y > 1:
         print(f"rsvo_replay: camera info with binning {camera.binning_y} rows: images "
               f"{camera.width}x{camera.height}, intrinsics scaled (REP 104); the line delay is "
@@ -357,7 +366,8 @@ def replay(cfg: ReplayConfig) -> dict:
                     continue
                 if conn.topic == info_topic:
                     try:
-                        camera = camera_from_info(msg, cfg.rectified)
+                        camera = camera_from_info(msg, cfg.rectified,
+                                                  cfg.uncalibrated_focal_factor)  # fmt: skip
                     except ValueError as exc:
                         skipped[f"camera info: {exc}"] += 1
                     continue
@@ -468,6 +478,9 @@ def replay(cfg: ReplayConfig) -> dict:
         "image_topic": cfg.image_topic,
         "camera_file": None if cfg.camera_file is None else str(cfg.camera_file),
         "rectified": cfg.rectified,
+        # where K came from: the camera info, a calibration file, or assumed (uncalibrated)
+        "intrinsics": "camera_file" if cfg.camera_file is not None else (
+            "assumed" if camera is not None and camera.assumed else "camera info"),
         "debug_video": None if video is None else {"path": str(cfg.debug_video),
                                                    "frames": video.frames},
         "frames_in_bag": n_images,
@@ -839,7 +852,11 @@ def plot_trajectory(path: Path, est: dict, gt: dict, frames: list, model: str) -
     ax.set_ylabel("z (m)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    if est:
+        ax.legend(loc="best", fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no frame posed\n(summary.json: skipped_reasons)", ha="center",
+                va="center", transform=ax.transAxes)
     ax.set_title("trajectory, top view")
     if frames:
         t0 = frames[0]["stamp_ns"]
@@ -932,6 +949,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the images are rectified (image_proc's image_rect): the intrinsics are "
                         "CameraInfo's projection P (with --camera-file: the ROS file's "
                         "projection_matrix), and no lens distortion is removed")
+    p.add_argument("--uncalibrated-focal-factor", type=float, default=0.0, metavar="F",
+                   help="a camera info without calibration (K all zero, as drivers publish "
+                        "without a calibration file): assume a pinhole camera of focal length "
+                        "F image widths (0.7-1.2 for most phones, webcams and dash cams), "
+                        "principal point at the centre, no lens distortion (default 0: such a "
+                        "camera info is refused, each of its images skipped)")
     p.add_argument("--debug-video", type=Path, default=None, metavar="MP4",
                    help="also write every processed frame with its tracks drawn (inliers "
                         "green, outliers red, tracks with no map point grey), as the node's "
@@ -1011,6 +1034,11 @@ def main(argv: list[str] | None = None) -> int:
         print("rsvo_replay: --rotation-only-parallax must be a finite number of px >= 0",
               file=sys.stderr)
         return EXIT_USAGE
+    if not (np.isfinite(args.uncalibrated_focal_factor)
+            and 0 <= args.uncalibrated_focal_factor <= 10):
+        print("rsvo_replay: --uncalibrated-focal-factor must be in [0, 10] image widths",
+              file=sys.stderr)
+        return EXIT_USAGE
     if not (np.isfinite(args.angular_acceleration) and args.angular_acceleration >= 0):
         print("rsvo_replay: --angular-acceleration must be a std >= 0 (rad/s^2)",
               file=sys.stderr)
@@ -1042,7 +1070,8 @@ def main(argv: list[str] | None = None) -> int:
                        None if auto else args.line_delay,
                        args.max_features, args.overwrite, not args.no_progress,
                        options, args.max_frames, refine_window, args.camera_file,
-                       args.camera_entry, args.rectified, args.debug_video)  # fmt: skip
+                       args.camera_entry, args.rectified, args.debug_video,
+                       args.uncalibrated_focal_factor)  # fmt: skip
     try:
         s = replay_two_pass(cfg) if args.two_pass else replay(cfg)
     except (ValueError, FileExistsError) as exc:

@@ -11,6 +11,7 @@ import pytest
 from rsvo_ros.core.lens import undistort_points
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.convert import (
+    assumed_intrinsics,
     camera_from_info,
     compressed_to_gray,
     covariance_for_msg,
@@ -148,7 +149,7 @@ def test_camera_from_info_of_rectified_images_takes_p_and_no_lens():
     assert np.array_equal(cam.K, [[380.0, 0, 150], [0, 385.0, 92], [0, 0, 1]])
     assert cam.lens is None and (cam.width, cam.height) == (320, 180)
     info.p = [0.0] * 12  # a CameraInfo without P cannot describe rectified images
-    with pytest.raises(ValueError, match="invalid P"):
+    with pytest.raises(ValueError, match="uncalibrated .P for rectified images all zero"):
         camera_from_info(info, rectified=True)
 
 
@@ -190,7 +191,8 @@ def test_a_region_of_interest_outside_the_image_is_refused():
 
 
 @pytest.mark.parametrize("k, d, model, message", [
-    ([0.0] * 9, [], "plumb_bob", "invalid K"),
+    ([0.0] * 9, [], "plumb_bob", "uncalibrated .K all zero.*uncalibrated_focal_factor"),
+    ([0.0] * 8 + [1.0], [], "plumb_bob", "invalid K"),
     ([np.nan] + [0.0] * 8, [], "plumb_bob", "invalid K"),
     ([400.0, 0, 160, 0, 400.0, 90, 0, 0, 1], [0.1], "kannala_brandt_9", "unsupported"),
     ([400.0, 0, 160, 0, 400.0, 90, 0, 0, 1], [0.1] * 5, "equidistant", "takes 4"),
@@ -200,6 +202,32 @@ def test_a_region_of_interest_outside_the_image_is_refused():
 def test_camera_from_info_rejects_bad_intrinsics(k, d, model, message):
     with pytest.raises(ValueError, match=message):
         camera_from_info(_info(k, d, model))
+
+
+def test_an_uncalibrated_camera_info_gets_assumed_intrinsics_only_when_asked():
+    """Camera drivers without a calibration file (usb_cam, v4l2_camera) publish K all zero.
+    Refused with the way out named; with uncalibrated_focal_factor the pinhole of that many
+    image widths, centred, without a lens, marked as assumed (binning applies as to any K)."""
+    info = _info([0.0] * 9, [0.1, 0.0, 0.0, 0.0, 0.0], width=640, height=360)
+    with pytest.raises(ValueError, match="uncalibrated"):
+        camera_from_info(info)
+    cam = camera_from_info(info, uncalibrated_focal_factor=0.9)
+    assert cam.assumed and cam.lens is None and (cam.width, cam.height) == (640, 360)
+    assert np.allclose(cam.K, [[576.0, 0, 319.5], [0, 576.0, 179.5], [0, 0, 1]])
+    assert np.array_equal(cam.K, assumed_intrinsics(640, 360, 0.9))
+    info.binning_x = info.binning_y = 2
+    half = camera_from_info(info, uncalibrated_focal_factor=0.9)
+    assert (half.width, half.height) == (320, 180) and half.K[0, 0] == 288.0
+    # a calibrated camera info is not touched by the factor
+    calibrated = _info([400.0, 0, 160, 0, 400.0, 90, 0, 0, 1], [], width=320, height=180)
+    cam = camera_from_info(calibrated, uncalibrated_focal_factor=0.9)
+    assert not cam.assumed and cam.K[0, 0] == 400.0
+    # nor is a broken one, and an uncalibrated one without an image size stays refused
+    with pytest.raises(ValueError, match="invalid K"):
+        camera_from_info(_info([-1.0, 0, 160, 0, 400.0, 90, 0, 0, 1], []),
+                         uncalibrated_focal_factor=0.9)
+    with pytest.raises(ValueError, match="no image size"):
+        camera_from_info(_info([0.0] * 9, [], width=0, height=0), uncalibrated_focal_factor=0.9)
 
 
 def test_pose_components_and_covariance():

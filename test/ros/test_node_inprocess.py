@@ -275,6 +275,28 @@ def test_a_binned_cameras_full_resolution_info_gives_the_same_odometry(ros_conte
     assert np.array_equal(poses[0], poses[1])
 
 
+def test_an_uncalibrated_camera_info_is_refused_or_assumed_as_asked(ros_context):
+    """A driver without a calibration file publishes K all zero: refused and counted (the
+    odometry never starts) unless uncalibrated_focal_factor is set; then the pinhole of that
+    many image widths, the diagnostics saying so, and odometry for every frame."""
+    info, msgs = _frames(6)
+    info.k = [0.0] * 9
+    for factor, expected in ((0.0, 0), (0.78125, 6)):
+        h = Harness(ros_context, [Parameter("model", value="gs"),
+                                  Parameter("uncalibrated_focal_factor", value=factor)])
+        try:
+            h.feed(info, msgs, wait=bool(expected))
+            assert len(h.odom) == expected
+            values = h.node._diagnostic_values()
+            if expected:
+                assert values["intrinsics"] == "assumed" and h.node.stats["bad"] == 0
+                assert h.node._camera[0][0, 0] == 250.0
+            else:
+                assert values["intrinsics"] == "none yet" and h.node.stats["bad"] >= 1
+        finally:
+            h.close()
+
+
 @pytest.mark.parametrize("image_frame", ["front_cam_optical", ""])
 def test_an_empty_camera_frame_takes_the_images_frame_id(ros_context, image_frame):
     """camera_frame '': the odometry's child frame and base -> camera on /tf_static name the

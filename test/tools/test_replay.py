@@ -485,6 +485,44 @@ def test_rectified_images_take_the_projection_and_no_lens(vehicle_bag, tmp_path)
     assert runs["raw"] != runs["original"]  # K and the lens were applied to rectified images
 
 
+def test_an_uncalibrated_cameras_bag_replays_with_an_assumed_focal_length(vehicle_bag, tmp_path,
+                                                                          capsys):  # fmt: skip
+    """A camera driver without a calibration file publishes K all zero: every image skipped,
+    the reason naming --uncalibrated-focal-factor; with it, a pinhole of that many image
+    widths. The synthetic camera's own factor (0.78125: 250 px at 320 px) gives the
+    calibrated replay's accuracy; a guess 28 % off (1.0) still poses every frame."""
+    def uncalibrated(c, raw, reader):
+        if c.topic == bagio.CAMERA_INFO_TOPIC:
+            msg = reader.deserialize(raw, c.msgtype)
+            msg.k, msg.d = np.zeros(9), np.zeros(0)
+            raw = bagio.serialize(msg)
+        return [(c.topic, c.msgtype, raw)]
+
+    bag = tmp_path / "uncalibrated"
+    _rewrite_bag(vehicle_bag, bag, uncalibrated)
+    runs = {}
+    for name, b, extra in (("original", vehicle_bag, []), ("refused", bag, []),
+                           ("right", bag, ["--uncalibrated-focal-factor", "0.78125"]),
+                           ("guess", bag, ["--uncalibrated-focal-factor", "1.0"])):
+        out = tmp_path / name
+        replay_main([str(b), "--output", str(out), "--no-progress", *extra])
+        runs[name] = json.loads((out / "summary.json").read_text())
+    refused = runs["refused"]
+    assert refused["frames_posed"] == 0
+    assert any("uncalibrated" in k and "uncalibrated-focal-factor" in k
+               for k in refused["skipped_reasons"]), refused["skipped_reasons"]
+    assert "assuming a pinhole camera of focal length 250.0 px" in capsys.readouterr().out
+    ate = {k: r["accuracy"]["ate_m"]["rmse"] for k, r in runs.items() if k != "refused"}
+    for name in ("right", "guess"):
+        r = runs[name]
+        assert r["intrinsics"] == "assumed" and r["frames_posed"] == r["frames_in"] == 8
+        assert np.isfinite(ate[name])
+    assert runs["original"]["intrinsics"] == "camera info"
+    assert ate["right"] == pytest.approx(ate["original"], rel=0.1), ate
+    assert replay_main([str(bag), "--output", str(tmp_path / "x"), "--no-progress",
+                        "--uncalibrated-focal-factor", "-1"]) == 2
+
+
 def test_a_binned_cameras_bag_replays_as_its_plain_original(vehicle_bag, tmp_path, capsys):
     """REP 104: a camera info of the full-resolution calibration with binning 2 x 2 and a
     region of interest describes the bag's images (they were all skipped as 'image size
