@@ -49,6 +49,10 @@ from rsvo_ros.twoview import LMOptions, RansacOptions, RelativePoseResult
 from rsvo_ros.twoview.estimator import warm_up as warm_up_two_view
 
 BACKENDS = ("window", "pairwise")
+# a fault of the package (an exception from process()) in this many frames in a row: the node
+# and the replay reset the pipeline and start a new trajectory, instead of skipping every
+# frame after a fault that the pipeline's state carries on (the first traceback is logged)
+FAULT_RESET_AFTER = 3
 
 
 @dataclass

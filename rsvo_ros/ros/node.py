@@ -13,6 +13,7 @@ import os
 import sys
 import threading
 import time
+import traceback
 from collections import deque
 from pathlib import Path as FilePath
 
@@ -33,7 +34,13 @@ from std_srvs.srv import Trigger
 
 from rsvo_ros.core.geometry import pose_inverse
 from rsvo_ros.odometry.pairwise import uncertain_rotation_or_auto
-from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions, warm_up
+from rsvo_ros.odometry.pipeline import (
+    FAULT_RESET_AFTER,
+    FrameResult,
+    OdometryPipeline,
+    PipelineOptions,
+    warm_up,
+)
 from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
 from rsvo_ros.odometry.twist import twist_in_frame
 from rsvo_ros.ros.convert import (
@@ -111,8 +118,9 @@ class RsvoNode(Node):
         self.pipeline: OdometryPipeline | None = None
         self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
                       "held": 0, "time_resets": 0, "map_refound": 0,
-                      "brightness_compensated": 0}  # fmt: skip
+                      "brightness_compensated": 0, "fault_resets": 0}  # fmt: skip
         self._bad_kinds: set[str] = set()
+        self._faults = 0  # processing errors in a row (FAULT_RESET_AFTER)
         self._recv_times: deque = deque(maxlen=100)
         # how old each image is when it arrives (the node's clock minus its stamp): the camera
         # driver's and the transport's share of the delay
@@ -340,8 +348,28 @@ class RsvoNode(Node):
                 continue
             try:
                 self._process(*item)
+                self._faults = 0
             except Exception as exc:  # noqa: BLE001 - the node must keep going
-                self._bad(f"processing error: {type(exc).__name__}: {exc}")
+                kind = f"processing error: {type(exc).__name__}: {exc}"
+                if not any(k.startswith("processing error") for k in self._bad_kinds):
+                    self.get_logger().error(traceback.format_exc())
+                self._bad(kind)
+                self._faults += 1
+                if self._faults >= FAULT_RESET_AFTER:
+                    self._fault_reset(kind)
+
+    def _fault_reset(self, kind: str) -> None:
+        """FAULT_RESET_AFTER processing errors in a row: the pipeline's state may be what
+        fails; start again from the next frame rather than skip every frame from now on."""
+        self._faults = 0
+        with self._pipeline_lock:
+            if self.pipeline is not None:
+                self.pipeline.reset()
+            self._path.clear()
+            self._trajectory.new_trajectory("processing errors")
+            self.stats["fault_resets"] += 1
+        self.get_logger().error(f"{FAULT_RESET_AFTER} frames in a row failed ({kind}): "
+                                f"odometry reset, the next frame starts a new trajectory")
 
     def _process(self, msg: Image, t_recv: float) -> None:
         self._take_image_frame(msg)

@@ -35,6 +35,7 @@ from rsvo_ros.odometry.pairwise import (
 )
 from rsvo_ros.odometry.pipeline import (
     BACKENDS,
+    FAULT_RESET_AFTER,
     FrameResult,
     OdometryPipeline,
     PipelineOptions,
@@ -278,6 +279,7 @@ def replay(cfg: ReplayConfig) -> dict:
     twists: list[tuple[int, Twist]] = []  # each posed frame's odometry twist (stamps may repeat)
     trajectories: list[dict[int, np.ndarray]] = [est]
     time_resets = 0
+    faults = fault_resets = 0  # processing errors in a row; resets after FAULT_RESET_AFTER
     refound = 0  # frames where the window re-found a lost map by its descriptors
     brightness = 0  # frames tracked in the previous image's grey levels (auto exposure)
     last_map_ns = None
@@ -402,6 +404,7 @@ def replay(cfg: ReplayConfig) -> dict:
                     pipeline.set_camera(camera.K, camera.lens, line_delay)
                 try:
                     res = pipeline.process(stamp, gray)
+                    faults = 0
                 except Exception as exc:  # noqa: BLE001 - as the node: one frame, not the bag
                     # the pipeline skips bad data itself; this is a fault of the package,
                     # counted per frame with the first traceback printed, the rest goes on
@@ -409,6 +412,18 @@ def replay(cfg: ReplayConfig) -> dict:
                     if not any(k.startswith("processing error") for k in skipped):
                         traceback.print_exc(file=sys.stderr)
                     skipped[key] += 1
+                    faults += 1
+                    if faults >= FAULT_RESET_AFTER:  # as the node: start again
+                        faults = 0
+                        fault_resets += 1
+                        pipeline.reset()
+                        if est:
+                            if last_map_ns is not None:
+                                write_map(last_map_ns)
+                            finish_path()
+                            est, last_map_ns, last_path_ns = {}, None, None
+                            trajectories.append(est)
+                            poses.clear()
                     continue
                 if video is not None:
                     video.add(stamp, draw_tracks(gray, res))
@@ -498,6 +513,7 @@ def replay(cfg: ReplayConfig) -> dict:
         # time that jumped back (a looped bag): each reset starts a trajectory; "accuracy" is
         # that of the longest one
         "time_resets": time_resets,
+        "fault_resets": fault_resets,
         # the window backend re-found its map (descriptors against the remembered landmarks)
         "map_refound": refound,
         # frames whose brightness changed (auto exposure), tracked in the previous image's grey
@@ -1090,6 +1106,10 @@ def main(argv: list[str] | None = None) -> int:
             line += f", scale {acc['scale_rate']['percent_per_s']:+.1f} % per s"
     print(line)
     events = []
+    if s.get("fault_resets"):
+        events.append(f"{FAULT_RESET_AFTER} frames in a row failed (a fault of the package, "
+                      f"summary.json skipped_reasons): the odometry reset "
+                      f"{s['fault_resets']} time(s)")
     if s.get("time_resets"):
         events.append(f"time went back {s['time_resets']} time(s): the odometry reset and "
                       f"started {len(s['trajectories'])} trajectories")

@@ -297,6 +297,35 @@ def test_an_uncalibrated_camera_info_is_refused_or_assumed_as_asked(ros_context)
             h.close()
 
 
+def test_a_fault_that_stays_resets_the_node_after_three_frames(ros_context, monkeypatch):
+    """The window backend raises on every frame from the second (a state gone bad): the node
+    counts the faults, resets after three in a row (logged, diagnostics fault_resets) and
+    posts odometry again from the frame after, where before it never posted again."""
+    from rsvo_ros.odometry.window import WindowOdometry
+
+    info, msgs = _frames(6)
+    poisoned, track = [], WindowOdometry.track
+
+    def failing(self, stamp_ns, obs, hint=None):
+        if stamp_ns >= _stamp(msgs[1]) and not poisoned and self.K[0, 0] == info.k[0]:
+            poisoned.append(self)
+        if poisoned and self is poisoned[0]:
+            raise RuntimeError("state gone bad")
+        return track(self, stamp_ns, obs, hint)
+
+    monkeypatch.setattr(WindowOdometry, "track", failing)
+    h = Harness(ros_context, [Parameter("model", value="gs")])
+    try:
+        h.feed(info, msgs)
+        assert h.node.stats["fault_resets"] == 1 and h.node.stats["bad"] == 3
+        assert len(h.odom) == 3  # the first frame, and the two after the reset
+        assert h.node._diagnostic_values()["fault_resets"] == "1"
+        first_after = h.odom[1].pose.pose.position
+        assert (first_after.x, first_after.y, first_after.z) == (0.0, 0.0, 0.0)  # a new origin
+    finally:
+        h.close()
+
+
 @pytest.mark.parametrize("image_frame", ["front_cam_optical", ""])
 def test_an_empty_camera_frame_takes_the_images_frame_id(ros_context, image_frame):
     """camera_frame '': the odometry's child frame and base -> camera on /tf_static name the

@@ -523,6 +523,40 @@ def test_an_uncalibrated_cameras_bag_replays_with_an_assumed_focal_length(vehicl
                         "--uncalibrated-focal-factor", "-1"]) == 2
 
 
+def _poison_the_window(monkeypatch, from_stamp_ns: int, focal: float) -> None:
+    """From ``from_stamp_ns`` on, the window backend of the camera with focal length
+    ``focal`` (not the warm-up's) raises on every frame, as a state gone bad would, until the
+    pipeline makes a new one (a reset)."""
+    from rsvo_ros.odometry.window import WindowOdometry
+
+    poisoned = []
+    track = WindowOdometry.track
+
+    def failing(self, stamp_ns, obs, hint=None):
+        if self.K[0, 0] == focal and stamp_ns >= from_stamp_ns and not poisoned:
+            poisoned.append(self)
+        if poisoned and self is poisoned[0]:
+            raise RuntimeError("state gone bad")
+        return track(self, stamp_ns, obs, hint)
+
+    monkeypatch.setattr(WindowOdometry, "track", failing)
+
+
+def test_a_fault_that_stays_resets_the_odometry_after_three_frames(
+        vehicle_bag, tmp_path, monkeypatch, capsys):
+    """A fault of the package that the pipeline's state carries on (every frame from the
+    third raises): before, every later frame was skipped; now three in a row reset the
+    odometry, and the frames after it are posed in a new trajectory."""
+    _poison_the_window(monkeypatch, round(2e9 / 30), 250.0)
+    out = tmp_path / "faults"
+    assert replay_main([str(vehicle_bag), "--output", str(out), "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    errors = sum(n for k, n in s["skipped_reasons"].items() if k.startswith("processing error"))
+    assert errors == 3 and s["fault_resets"] == 1
+    assert [t["frames"] for t in s["trajectories"]] == [2, 3]
+    assert "state gone bad" in capsys.readouterr().err  # the first traceback
+
+
 def test_a_binned_cameras_bag_replays_as_its_plain_original(vehicle_bag, tmp_path, capsys):
     """REP 104: a camera info of the full-resolution calibration with binning 2 x 2 and a
     region of interest describes the bag's images (they were all skipped as 'image size
