@@ -129,7 +129,8 @@ class CameraIntrinsics:
 
 
 UNCALIBRATED_HINT = ("calibrate the camera (camera_calibration), or set "
-                     "uncalibrated_focal_factor (rsvo_replay: --uncalibrated-focal-factor) to "
+                     "uncalibrated_focal_factor (rsvo_replay, rsvo_calibrate: "
+                     "--uncalibrated-focal-factor) to "
                      "assume a focal length of that many image widths, e.g. 1.0")
 
 

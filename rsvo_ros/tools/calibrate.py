@@ -15,6 +15,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from rsvo_ros.core.readout import READOUTS
 from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.ros import bagio
@@ -37,6 +39,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "instead of the camera info topic")
     p.add_argument("--camera-entry", default=None, metavar="CAM",
                    help="the Kalibr camchain's entry (default cam0)")
+    p.add_argument("--uncalibrated-focal-factor", type=float, default=0.0, metavar="F",
+                   help="a camera info without calibration (K all zero): assume a pinhole "
+                        "camera of focal length F image widths, as rsvo_replay does (default 0: "
+                        "refused)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="use only the first N images (default: all)")
     p.add_argument("--readout-direction", choices=READOUTS, default="down",
@@ -52,13 +58,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_frames is not None and args.max_frames < 10:
         print("rsvo_calibrate: --max-frames must be at least 10", file=sys.stderr)
         return EXIT_USAGE
+    if not (np.isfinite(args.uncalibrated_focal_factor)
+            and 0 <= args.uncalibrated_focal_factor <= 10):
+        print("rsvo_calibrate: --uncalibrated-focal-factor must be in [0, 10] image widths",
+              file=sys.stderr)
+        return EXIT_USAGE
     with tempfile.TemporaryDirectory(prefix="rsvo_calibrate_") as tmp:
         cfg = ReplayConfig(args.bag, Path(tmp) / "replay", "rs", args.image_topic,
                            args.camera_info_topic, progress=not args.no_progress,
                            options=PipelineOptions(line_delay_auto=True,
                                                    readout=args.readout_direction),
                            max_frames=args.max_frames, camera_file=args.camera_file,
-                           camera_entry=args.camera_entry)  # fmt: skip
+                           camera_entry=args.camera_entry,
+                           uncalibrated_focal_factor=args.uncalibrated_focal_factor)  # fmt: skip
         try:
             summary = replay(cfg)
         except ReplayError as exc:

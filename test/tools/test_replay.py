@@ -521,6 +521,19 @@ def test_an_uncalibrated_cameras_bag_replays_with_an_assumed_focal_length(vehicl
     assert ate["right"] == pytest.approx(ate["original"], rel=0.1), ate
     assert replay_main([str(bag), "--output", str(tmp_path / "x"), "--no-progress",
                         "--uncalibrated-focal-factor", "-1"]) == 2
+    # rsvo_calibrate takes the same flag (the bag is too short for an estimate either way)
+    from rsvo_ros.tools.calibrate import main as calibrate_main
+
+    capsys.readouterr()
+    yaml_out = str(tmp_path / "ld.yaml")
+    assert calibrate_main([str(bag), "--output", yaml_out, "--no-progress"]) == 1
+    assert "rsvo_calibrate: --uncalibrated-focal-factor" in capsys.readouterr().err
+    assert calibrate_main([str(bag), "--output", yaml_out, "--no-progress",
+                           "--uncalibrated-focal-factor", "0.78125"]) == 1
+    err = capsys.readouterr().err
+    assert "no estimate" in err and "uncalibrated" not in err
+    assert calibrate_main([str(bag), "--output", yaml_out, "--no-progress",
+                           "--uncalibrated-focal-factor", "nan"]) == 2
 
 
 def _poison_the_window(monkeypatch, from_stamp_ns: int, focal: float) -> None:
