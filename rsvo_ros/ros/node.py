@@ -280,22 +280,25 @@ class RsvoNode(Node):
             self._pending = (msg, time.monotonic())
         self._wake.set()
 
+    def _restart_odometry(self, reason: str) -> None:
+        """The pipeline forgets everything (call with _pipeline_lock held): the next frame
+        starts a new trajectory at the identity; the path restarts and the trajectory file
+        says why."""
+        if self.pipeline is not None:
+            self.pipeline.reset()
+        self._path.clear()
+        self._trajectory.new_trajectory(reason)
+
     def _on_clock_jump(self, jump) -> None:
         with self._pipeline_lock:
-            if self.pipeline is not None:
-                self.pipeline.reset()
-            self._path.clear()
-            self._trajectory.new_trajectory("ROS time jumped back")
+            self._restart_odometry("ROS time jumped back")
             self.stats["time_resets"] += 1
         self.get_logger().warning("ROS time jumped back (a /clock restart?): odometry reset, "
                                   "the next frame starts a new trajectory")
 
     def _on_reset(self, request, response):
         with self._pipeline_lock:
-            if self.pipeline is not None:
-                self.pipeline.reset()
-            self._path.clear()
-            self._trajectory.new_trajectory("reset service")
+            self._restart_odometry("reset service")
         response.success = True
         response.message = "odometry reset: the next frame is the new origin"
         self.get_logger().info(response.message)
@@ -363,10 +366,7 @@ class RsvoNode(Node):
         fails; start again from the next frame rather than skip every frame from now on."""
         self._faults = 0
         with self._pipeline_lock:
-            if self.pipeline is not None:
-                self.pipeline.reset()
-            self._path.clear()
-            self._trajectory.new_trajectory("processing errors")
+            self._restart_odometry("processing errors")
             self.stats["fault_resets"] += 1
         self.get_logger().error(f"{FAULT_RESET_AFTER} frames in a row failed ({kind}): "
                                 f"odometry reset, the next frame starts a new trajectory")

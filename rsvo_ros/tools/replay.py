@@ -341,6 +341,17 @@ def replay(cfg: ReplayConfig) -> dict:
             if poses and last_path_ns != poses[-1][0]:
                 write_path(poses[-1][0])
 
+        def new_trajectory() -> None:
+            """The ended trajectory's last map and whole path written; the next pose starts
+            another (a time reset, a reset after faults)."""
+            nonlocal est, last_map_ns, last_path_ns
+            if last_map_ns is not None:
+                write_map(last_map_ns)
+            finish_path()
+            est, last_map_ns, last_path_ns = {}, None, None
+            trajectories.append(est)
+            poses.clear()
+
         def messages():
             """The bag's messages until the storage fails (a truncated or corrupt file in the
             middle of the bag): that ends the bag, counted; any other error is not the
@@ -418,12 +429,7 @@ def replay(cfg: ReplayConfig) -> dict:
                         fault_resets += 1
                         pipeline.reset()
                         if est:
-                            if last_map_ns is not None:
-                                write_map(last_map_ns)
-                            finish_path()
-                            est, last_map_ns, last_path_ns = {}, None, None
-                            trajectories.append(est)
-                            poses.clear()
+                            new_trajectory()
                     continue
                 if video is not None:
                     video.add(stamp, draw_tracks(gray, res))
@@ -435,12 +441,7 @@ def replay(cfg: ReplayConfig) -> dict:
                 brightness += res.brightness_change is not None
                 if res.time_reset:
                     time_resets += 1
-                    if last_map_ns is not None:
-                        write_map(last_map_ns)  # the last map of the ended trajectory
-                    finish_path()  # ... and its whole path
-                    est, last_map_ns, last_path_ns = {}, None, None
-                    trajectories.append(est)
-                    poses.clear()
+                    new_trajectory()
                 est[stamp] = res.T_world_cam
                 twists.append((stamp, res.twist))
                 tum.write(tum_line(stamp, res.T_world_cam) + "\n")
