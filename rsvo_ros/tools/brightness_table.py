@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import sys
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import numpy as np
 
 from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.sim.synth import SynthConfig
+from rsvo_ros.tools.rate_table import run_cases
 from rsvo_ros.tools.replay import ReplayConfig, replay
 from rsvo_ros.tools.synth_bag import write_bag
 
@@ -147,10 +147,6 @@ def plot(path: Path, rows: list[dict]) -> None:
     plt.close(fig)
 
 
-def _run_case(job: tuple) -> dict:
-    return run_case(*job)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m rsvo_ros.tools.brightness_table",
                                 description=__doc__,
@@ -165,14 +161,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     jobs = [(args.out, *case, args.frames) for case in CASES]
-    rows = []
-    with multiprocessing.Pool(args.jobs) as pool:
-        for row in pool.imap(_run_case, jobs):  # in order, printed as each finishes
-            rows.append(row)
-            print(f"[brightness_table] {row['case']}: RS {row['ate_rs_m']:.3f} m, not "
-                  f"compensated {row['ate_rs_uncompensated_m']:.3f} m, GS {row['ate_gs_m']:.3f}"
-                  f" m ({row['frames_compensated']} of {row['frames']} frames mapped)",
-                  flush=True)
+    rows = run_cases(run_case, jobs, args.jobs, lambda k, n, row: (
+        f"[brightness_table] {row['case']}: RS {row['ate_rs_m']:.3f} m, not compensated "
+        f"{row['ate_rs_uncompensated_m']:.3f} m, GS {row['ate_gs_m']:.3f} m "
+        f"({row['frames_compensated']} of {row['frames']} frames mapped)"))
     flat = {(r["motion"], r["severity"], r["seed"]): r["ate_rs_constant_m"] for r in rows
             if r["ate_rs_constant_m"] is not None}
     for r in rows:

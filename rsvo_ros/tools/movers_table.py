@@ -17,14 +17,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from rsvo_ros.sim.synth import SynthConfig
-from rsvo_ros.tools.rate_table import MOTION_COLOURS, fmt, gmean, ratio, replay_row
+from rsvo_ros.tools.rate_table import (
+    MOTION_COLOURS,
+    fmt,
+    gmean,
+    ratio,
+    replay_row,
+    run_cases,
+)
 from rsvo_ros.tools.synth_bag import write_bag
 
 MOVERS = (0, 2, 4)
@@ -126,10 +132,6 @@ def plot(path: Path, rows: list[dict]) -> None:
     plt.close(fig)
 
 
-def _run_case(job: tuple) -> dict:
-    return run_case(*job)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m rsvo_ros.tools.movers_table", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -143,13 +145,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     jobs = [(args.out, *c, n, args.frames) for c in CASES for n in MOVERS]
-    rows = []
-    with multiprocessing.Pool(args.jobs) as pool:
-        for k, row in enumerate(pool.imap(_run_case, jobs), 1):
-            rows.append(row)
-            print(f"[movers_table {k}/{len(jobs)}] {row['case']}: RS ATE "
-                  f"{fmt(row['rs']['ate_m'], '.3f')} m, GS {fmt(row['gs']['ate_m'], '.3f')} m",
-                  flush=True)
+    rows = run_cases(run_case, jobs, args.jobs, lambda k, n, row: (
+        f"[movers_table {k}/{n}] {row['case']}: RS ATE {fmt(row['rs']['ate_m'], '.3f')} m, "
+        f"GS {fmt(row['gs']['ate_m'], '.3f')} m"))
     (args.out / "movers.json").write_text(json.dumps(rows, indent=1))
     (args.out / "movers.md").write_text(table(rows) + "\n\n" + summary(rows) + "\n")
     plot(args.out / "movers.png", rows)

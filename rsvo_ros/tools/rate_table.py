@@ -164,8 +164,21 @@ def plot(path: Path, rows: list[dict]) -> None:
     plt.close(fig)
 
 
-def _run_case(job: tuple) -> dict:
-    return run_case(*job)
+def _call(job: tuple) -> dict:
+    fn, args = job
+    return fn(*args)
+
+
+def run_cases(fn, jobs: list[tuple], processes: int, describe) -> list[dict]:
+    """``fn(*job)`` for every job on a pool of ``processes`` (the table tools' cases, each a
+    bag written and replayed), in order; ``describe(k, n, row)`` is printed as the k-th of n
+    rows comes in. Returns the rows. (``fn`` at module level: the pool pickles it.)"""
+    rows = []
+    with multiprocessing.Pool(processes) as pool:
+        for k, row in enumerate(pool.imap(_call, [(fn, job) for job in jobs]), 1):
+            rows.append(row)
+            print(describe(k, len(jobs), row), flush=True)
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -180,12 +193,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     jobs = [(args.out, *c, rate, args.seconds) for rate in RATES_HZ for c in CASES]
-    rows = []
-    with multiprocessing.Pool(args.jobs) as pool:
-        for k, row in enumerate(pool.imap(_run_case, jobs), 1):
-            rows.append(row)
-            print(f"[rate_table {k}/{len(jobs)}] {row['case']}: RS / GS ATE "
-                  f"{fmt(ratio(row['rs']['ate_m'], row['gs']['ate_m']), '.2f')}", flush=True)
+    rows = run_cases(run_case, jobs, args.jobs, lambda k, n, row: (
+        f"[rate_table {k}/{n}] {row['case']}: RS / GS ATE "
+        f"{fmt(ratio(row['rs']['ate_m'], row['gs']['ate_m']), '.2f')}"))
     (args.out / "rate.json").write_text(json.dumps(rows, indent=1))
     (args.out / "rate.md").write_text(table(rows) + "\n\n" + summary(rows) + "\n")
     plot(args.out / "rate.png", rows)

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from rsvo_ros.sim.synth import SynthConfig
+from rsvo_ros.tools.rate_table import run_cases
 from rsvo_ros.tools.replay import ReplayConfig, ground_truth_of, replay
 from rsvo_ros.tools.synth_bag import write_bag
 
@@ -171,10 +171,6 @@ def plot(path: Path, series: dict[str, dict[str, np.ndarray]]) -> None:
     plt.close(fig)
 
 
-def _run_case(job: tuple) -> dict:
-    return run_case(*job)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m rsvo_ros.tools.twist_table", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -186,14 +182,12 @@ def main(argv: list[str] | None = None) -> int:
         print("twist_table: --frames must be at least 10 and --jobs at least 1", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    with multiprocessing.Pool(args.jobs) as pool:
-        for row in pool.imap(_run_case, [(args.out, *c, args.frames) for c in CASES]):
-            rows.append(row)
-            print(f"[twist_table] {row['case']}: {row['known']} of {row['frames']} frames with a "
-                  f"twist, angular against the interval "
-                  f"{row['angular_error_vs_interval_deg_s_median'] or float('nan'):.1f} deg/s",
-                  flush=True)
+    rows = run_cases(run_case, [(args.out, *c, args.frames) for c in CASES], args.jobs,
+                     lambda k, n, row: (
+                         f"[twist_table] {row['case']}: {row['known']} of {row['frames']} "
+                         f"frames with a twist, angular against the interval "
+                         f"{row['angular_error_vs_interval_deg_s_median'] or float('nan'):.1f}"
+                         f" deg/s"))
     (args.out / "twist.json").write_text(json.dumps(rows, indent=1))
     (args.out / "twist.md").write_text(table(rows) + "\n\n" + summary(rows) + "\n")
     series = {f"{m} severity {s:g}, seed {n}": rates(args.out / f"{m}_sev{s:g}_seed{n}__out")
