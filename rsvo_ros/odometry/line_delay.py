@@ -113,6 +113,14 @@ class LineDelayCalibrator:
     def add_frame(self) -> None:
         self.frames += 1
 
+    def restart(self) -> None:
+        """Forget the windows and poses (the odometry processes its frames again, with the
+        estimate: the new run's windows replace them); the frames counted and the readout
+        grid's interval are kept."""
+        self.windows = []
+        self._poses = []
+        self._since_estimate = 0
+
     def add_pose(self, state: FrameState) -> None:
         """A tracked frame's pose (for the keyframes' velocities from the trajectory)."""
         pose = (state.stamp_ns, state.R.copy(), state.p.copy())

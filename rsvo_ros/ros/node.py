@@ -118,7 +118,8 @@ class RsvoNode(Node):
         self.pipeline: OdometryPipeline | None = None
         self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
                       "held": 0, "time_resets": 0, "map_refound": 0,
-                      "brightness_compensated": 0, "fault_resets": 0}  # fmt: skip
+                      "brightness_compensated": 0, "fault_resets": 0,
+                      "frames_revised": 0}  # fmt: skip
         self._bad_kinds: set[str] = set()
         self._faults = 0  # processing errors in a row (FAULT_RESET_AFTER)
         self._recv_times: deque = deque(maxlen=100)
@@ -330,6 +331,11 @@ class RsvoNode(Node):
         opts.window.map.prior_acc_rad_s2 = float(self.p["angular_acceleration_std"])
         opts.window.keyframe_log_max = int(self.p["path_max_length"])  # flat memory
         opts.line_delay_auto = self.p["line_delay_mode"] == "auto"
+        # live, the frames before the first estimate are processed again with it (the replay's
+        # default) only on request: that takes a second or two in one frame, and the frames
+        # the camera sends meanwhile are dropped
+        if not self.p["line_delay_rerun"]:
+            opts.line_delay_rerun_max_frames = 0
         self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)
 
     def _bad(self, kind: str) -> None:
@@ -414,6 +420,8 @@ class RsvoNode(Node):
             self.stats["held"] += 1
         if res.refound:
             self.stats["map_refound"] += 1
+        if res.revised:
+            self._take_revised(res.revised)
         if res.brightness_change is not None:
             self.stats["brightness_compensated"] += 1
         self._state = {"initialising": f"initialising: {res.reason}", "tracking": "tracking",
@@ -423,6 +431,21 @@ class RsvoNode(Node):
         t_pub = time.perf_counter()
         self._publish(msg, res, gray)
         self._publish_ms.append((time.perf_counter() - t_pub) * 1e3)
+
+    def _take_revised(self, revised: list[FrameResult]) -> None:
+        """line_delay_rerun: the frames before the first line-delay estimate, processed again
+        with it; the path gets their new poses (the published odometry stays as it was)."""
+        poses = {r.stamp_ns: r.T_world_cam for r in revised if r.T_world_cam is not None}
+        for ps in self._path:
+            T = poses.get(stamp_ns(ps.header))
+            if T is not None:
+                fill_pose(ps.pose, self._to_odom(T))
+        self.stats["frames_revised"] += len(revised)
+        info = (self.pipeline.line_delay_reruns or [{}])[-1]
+        self.get_logger().info(
+            f"line delay auto: the {len(revised)} frames before the first estimate processed "
+            f"again with {info.get('line_delay_s', 0.0) * 1e6:.2f} us/row in "
+            f"{info.get('time_ms', 0.0) / 1e3:.1f} s; the path has their new poses")
 
     @property
     def camera_frame(self) -> str:

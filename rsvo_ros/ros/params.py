@@ -99,6 +99,13 @@ PARAMETERS = {
         "fixed: use line_delay; auto: estimate the line delay from the video (RS model, window "
         "backend; line_delay is the start, or a nominal half-frame readout when it is 0) and "
         "report it in the diagnostics.", LINE_DELAY_MODES)),
+    "line_delay_rerun": (False, _bool(
+        "line_delay_mode auto: when the first estimate comes, process the frames so far again "
+        "with it (at most 300, kept as images until then) and publish their new poses as the "
+        "path; the odometry stays continuous. Takes a second or two on that frame, during "
+        "which the camera's frames are dropped (the newest is kept), so false (default) for a "
+        "live camera; rsvo_replay does it unless --no-line-delay-rerun (the frames before the "
+        "first estimate otherwise keep the map and scale the starting readout gave them).")),
     "line_delay_save_file": ("", _str(
         "line_delay_mode auto: write the estimate to this ROS 2 parameter file when it "
         "converges and at shutdown (line_delay: the estimate, line_delay_mode: auto), so that "
@@ -300,6 +307,8 @@ def read_config(values: dict) -> NodeConfig:
             raise ValueError(f"parameter {name} must be one of {choices}, got {p[name]!r}")
     if p["line_delay_mode"] == "auto" and (p["model"] != "rs" or p["backend"] != "window"):
         raise ValueError("parameter line_delay_mode auto needs model rs and backend window")
+    if p["line_delay_rerun"] and p["line_delay_mode"] != "auto":
+        raise ValueError("parameter line_delay_rerun needs line_delay_mode auto")
     if p["line_delay_save_file"]:
         if p["line_delay_mode"] != "auto":
             raise ValueError("parameter line_delay_save_file needs line_delay_mode auto")

@@ -66,8 +66,11 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="rsvo_calibrate_") as tmp:
         cfg = ReplayConfig(args.bag, Path(tmp) / "replay", "rs", args.image_topic,
                            args.camera_info_topic, progress=not args.no_progress,
+                           # the estimate as the node makes it: the re-runs of the first
+                           # frames mend the replay's trajectory, not the estimate (README)
                            options=PipelineOptions(line_delay_auto=True,
-                                                   readout=args.readout_direction),
+                                                   readout=args.readout_direction,
+                                                   line_delay_rerun_max_frames=0),
                            max_frames=args.max_frames, camera_file=args.camera_file,
                            camera_entry=args.camera_entry,
                            uncalibrated_focal_factor=args.uncalibrated_focal_factor)  # fmt: skip

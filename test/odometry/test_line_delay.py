@@ -33,7 +33,10 @@ def _run(line_delay_true: float, auto: bool, seed: int = 0):
     est, gt = {}, {}
     for f in renderer:
         s = round(f.stamp * 1e9)
-        est[s] = pipe.process(s, f.image).T_world_cam
+        res = pipe.process(s, f.image)
+        for r in res.revised or ():  # the frames before the first estimate, run again
+            est[r.stamp_ns] = r.T_world_cam
+        est[s] = res.T_world_cam
         gt[s] = ground_truth_pose(f)
     pipe.close()
     return pipe, accuracy(gt, est)["ate_m"]["rmse"]
@@ -181,3 +184,48 @@ def test_the_re_solves_hold_the_accelerations(auto_50):
     taus = np.array([0.0, 2e-5, 5e-5, 8e-5])
     trajectory = cal._trajectory()
     assert np.allclose(cal._costs(win, taus, trajectory), cal._costs(as_held, taus, trajectory))
+
+
+def test_the_frames_before_the_first_estimate_run_again_with_it():
+    """With the first estimate, the trajectory's earlier frames are processed again with it
+    from a fresh start, before the next frame: their new poses are those a pipeline started
+    with that line delay gives them (up to one rigid offset, which puts the last of them where
+    it was published: no jump); a later estimate away from it runs them again (at most
+    ``line_delay_reruns`` times). Off (``line_delay_rerun_max_frames=0``, the node's): none."""
+    from rsvo_ros.core.geometry import pose_inverse
+
+    cfg = SynthConfig(frames=110, motion="walk", severity=1.0, seed=0, line_delay=5e-5)
+    frames = [(round(f.stamp * 1e9), f.image) for f in SequenceRenderer(cfg)]
+    K = SequenceRenderer(cfg).K
+    options = PipelineOptions(line_delay_auto=True)
+    pipe = OdometryPipeline(K, None, 0.0, options)
+    published, reruns = [], []  # (frame index, its revised results, the pose published before)
+    for k, (stamp, image) in enumerate(frames):
+        res = pipe.process(stamp, image)
+        if res.revised is not None:
+            reruns.append((k, res.revised, published[-1]))
+        published.append(res.T_world_cam)
+    pipe.close()
+    assert 1 <= len(reruns) <= options.line_delay_reruns
+    assert [r["frames"] for r in pipe.line_delay_reruns] == [k for k, _, _ in reruns]
+    for k, revised, before in reruns:
+        assert [r.stamp_ns for r in revised] == [s for s, _ in frames[:k]]
+        assert np.allclose(revised[-1].T_world_cam, before, atol=1e-9)  # continuous
+    first = next(h["line_delay_s"] for h in pipe.line_delay_history
+                 if h["line_delay_s"] is not None)
+    assert pipe.line_delay_reruns[0]["line_delay_s"] == first > 0
+    k, revised, _ = reruns[0]
+    fresh = OdometryPipeline(K, None, first, PipelineOptions())
+    again = [fresh.process(s, im).T_world_cam for s, im in frames[:k]]
+    fresh.close()
+    offsets = [r.T_world_cam @ pose_inverse(T) for r, T in zip(revised, again, strict=True)]
+    assert np.allclose(offsets, offsets[-1], atol=1e-6)
+    assert not np.allclose(offsets[-1], np.eye(4), atol=1e-3)  # the old run had drifted
+    # the calibrator's windows are the new run's, and it goes on estimating from them
+    assert pipe.line_delay_history[-1]["frames"] > k
+
+    off = OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True,
+                                                         line_delay_rerun_max_frames=0))
+    assert all(off.process(s, im).revised is None for s, im in frames[:reruns[0][0] + 1])
+    assert off.line_delay_reruns == [] and off.line_delay_history
+    off.close()

@@ -274,6 +274,7 @@ def test_invalid_parameters_fail_at_start_up(tmp_path):
                        (["-p", "line_delay_mode:=auto", "-p", "model:=gs"], "line_delay_mode"),
                        (["-p", "lost_odometry:=zero"], "lost_odometry"),
                        (["-p", "line_delay_save_file:=/tmp/x.yaml"], "line_delay_save_file"),
+                       (["-p", "line_delay_rerun:=true"], "line_delay_rerun needs"),
                        (["-p", "line_delay_mode:=auto", "-p",
                          f"line_delay_save_file:={tmp_path}/no/such/x.yaml"],
                         "does not exist"),

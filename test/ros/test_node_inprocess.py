@@ -547,6 +547,40 @@ def test_line_delay_auto_is_reported_in_the_diagnostics(ros_context):
         h.close()
 
 
+def test_line_delay_rerun_revises_the_path_live_only_on_request(ros_context):
+    """line_delay_rerun: with the first estimate the frames so far are processed again with
+    it, their new poses go into the path and the count into the diagnostics; without it (the
+    default) the node keeps no frames for that and goes on from the estimate."""
+    from rsvo_ros.odometry.line_delay import LineDelayEstimate
+
+    # 30 us/row: away from the starting readout (half a frame interval, 93 us/row here)
+    est = LineDelayEstimate("estimated", line_delay_s=3e-5, std_s=2e-6, readout_fraction=0.32,
+                            std_fraction=0.02, readout_s=5.4e-3, windows=9, frames=60)
+    info, msgs = _frames(7)
+    for rerun in (True, False):
+        h = Harness(ros_context, [Parameter("line_delay_mode", value="auto"),
+                                  Parameter("line_delay_rerun", value=rerun),
+                                  Parameter("async_mapping", value=False)])
+        try:
+            h.feed(info, msgs[:6])
+            before = [p.pose.position.x for p in h.node._path]
+            h.node.pipeline._take_estimate(est, 0)
+            h.feed(info, msgs[6:])
+            assert h.node.pipeline.line_delay == 3e-5 and len(h.odom) == 7
+            after = [p.pose.position.x for p in list(h.node._path)[:6]]
+            if rerun:
+                assert h.node.stats["frames_revised"] == 6
+                assert h.node._diagnostic_values()["frames_revised"] == "6"
+                assert [r["frames"] for r in h.node.pipeline.line_delay_reruns] == [6]
+                assert after != before  # the path took the new poses
+            else:
+                assert h.node.pipeline.options.line_delay_rerun_max_frames == 0
+                assert h.node.stats["frames_revised"] == 0 and after == before
+                assert h.node.pipeline.line_delay_reruns == []
+        finally:
+            h.close()
+
+
 def test_line_delay_save_file_is_the_next_start(ros_context, tmp_path):
     """line_delay_mode auto with line_delay_save_file: a converged estimate is written as a
     parameter file (once per value; at shutdown the last estimate), and a node started from

@@ -758,10 +758,30 @@ def test_two_passes_replay_with_the_first_pass_estimate(walk_bag, tmp_path, caps
     assert replay_main([str(walk_bag), "--output", str(tmp_path / "online"), "--line-delay",
                         "auto", "--no-progress"]) == 0
     online = json.loads((tmp_path / "online" / "summary.json").read_text())
-    assert online["accuracy"] == first["accuracy"]  # the first pass is the online replay
     firsts = [h["frames"] for h in online["line_delay_auto"]["history"]
               if h["line_delay_s"] is not None]
-    assert f"the {firsts[0]} frames before the first estimate" in capsys.readouterr().out
+    # ... which processed the frames before its first estimate again with it: trajectory.tum
+    # and the accuracy have their new poses, accuracy_as_published what was published
+    rerun = online["line_delay_auto"]["reruns"][0]
+    assert rerun["frames"] == firsts[0] - 1
+    assert online["line_delay_auto"]["frames_revised"] == sum(
+        r["frames"] for r in online["line_delay_auto"]["reruns"])
+    assert rerun["line_delay_s"] == online["line_delay_auto"]["history"][0]["line_delay_s"]
+    said = f"the frames before the first estimate were processed again with it ({rerun['frames']}"
+    assert said + " frames with" in capsys.readouterr().out
+    assert online["accuracy_as_published"]["ate_m"]["rmse"] != online["accuracy"]["ate_m"][
+        "rmse"]
+    tum = np.loadtxt(tmp_path / "online" / "trajectory.tum")
+    assert len(tum) == len(np.unique(tum[:, 0])) == online["frames_posed"]
+    # as the node runs: on from the first estimate, the frames before it as they ran
+    assert replay_main([str(walk_bag), "--output", str(tmp_path / "node"), "--line-delay",
+                        "auto", "--no-line-delay-rerun", "--no-progress"]) == 0
+    node = json.loads((tmp_path / "node" / "summary.json").read_text())
+    assert node["line_delay_auto"]["reruns"] == [] and "accuracy_as_published" not in node
+    assert node["accuracy"] == first["accuracy"]  # the first of two passes runs as the node
+    assert first["line_delay_auto"]["reruns"] == []
+    assert f"the {firsts[0]} frames before the first estimate ran with the starting" \
+        in capsys.readouterr().out
     # two passes need auto
     assert replay_main([str(short), "--output", str(tmp_path / "x"), "--two-pass"]) == 2
     assert "--two-pass needs --line-delay auto" in capsys.readouterr().err
