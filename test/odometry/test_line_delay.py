@@ -226,6 +226,8 @@ def test_the_frames_before_the_first_estimate_run_again_with_it():
 
     off = OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True,
                                                          line_delay_rerun_max_frames=0))
-    assert all(off.process(s, im).revised is None for s, im in frames[:reruns[0][0] + 1])
-    assert off.line_delay_reruns == [] and off.line_delay_history
+    assert all(off.process(s, im).revised is None for s, im in frames[:4])
+    off._take_estimate(dataclasses.replace(pipe.line_delay_estimate, line_delay_s=first), 0)
+    assert off.line_delay == first and off.process(*frames[4]).revised is None
+    assert off.line_delay_reruns == []
     off.close()

@@ -122,10 +122,10 @@ def test_node_publishes_odometry_for_every_played_frame(graph, small_bag, tmp_pa
     data = _run_graph(graph, small_bag, ["-p", "model:=gs", "-p", "line_delay:=0.0002",
                                          "-p", "async_mapping:=false",
                                          "-p", "path_publish_period_s:=0.0"],
-                      ["--rate", "0.25"], FRAMES)
+                      ["--rate", "0.15"], FRAMES)
     odom = data["odom"]
-    # reliable at 7.5 Hz: every frame (a frame dropped while the node was busy would show in
-    # the diagnostics, printed here; a loaded machine can cause that)
+    # reliable at 4.5 Hz: every frame (a frame dropped while the node was busy would show in
+    # the diagnostics, printed here; at 7.5 Hz one of 24 was dropped on a slow day)
     assert len(odom) == FRAMES, _why_missing(graph, data)
     assert {o["frame_id"] for o in odom} == {"odom"}
     assert {o["child"] for o in odom} == {"camera_optical_frame"}

@@ -11,7 +11,10 @@ def _row(group, true, est, ate_auto=0.1, ate_true=0.1, history=(), ate_two_pass=
     return {"case": f"{group}{true}", "group": group, "line_delay_true_s": true,
             "estimate": {"line_delay_s": est, "std_s": None if est is None else 1e-6},
             "ate_auto_m": ate_auto, "ate_true_m": ate_true, "history": list(history),
-            "ate_two_pass_m": ate_auto if ate_two_pass is None else ate_two_pass}
+            "ate_two_pass_m": ate_auto if ate_two_pass is None else ate_two_pass,
+            # with the re-runs of the first frames, and as the node runs (no re-runs)
+            "estimate_rerun": {"line_delay_s": est, "std_s": None if est is None else 1e-6},
+            "ate_auto_node_m": 2 * ate_auto}
 
 
 def test_within_uses_the_relative_target_and_the_absolute_one_below_20_us():
@@ -26,9 +29,10 @@ def test_summary_counts_per_group_and_the_figure_is_written(tmp_path):
             _row("held out", 1e-4, 1.3e-4, ate_auto=0.2, ate_two_pass=0.105),
             _row("held out", 0.0, 0.0), _row("fresh", 3e-5, None)]
     text = summary(rows)
-    assert "- held out: line delay within 10 % on 1 of 2 rolling-shutter bags, ATE auto " \
-           "within 10 % of ATE true on 1 of 2 (two passes: 2); global shutter within 2 us/row " \
-           "on 1 of 1" in text
+    assert "- held out: line delay within 10 % on 1 of 2 rolling-shutter bags (with the " \
+           "re-runs: 1), ATE auto within 10 % of ATE true on 1 of 2 (as the node, without the " \
+           "re-runs: 0; two passes: 2); global shutter within 2 us/row on 1 of 1, its ATE auto " \
+           "within 10 % on 1 (as the node: 0)" in text
     assert "- fresh: line delay within 10 % on 0 of 1" in text
     plot(tmp_path / "line_delay.png", rows)
     assert mpimg.imread(tmp_path / "line_delay.png").shape[1] > 500
