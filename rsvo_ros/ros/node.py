@@ -443,8 +443,8 @@ class RsvoNode(Node):
         self.stats["frames_revised"] += len(revised)
         info = (self.pipeline.line_delay_reruns or [{}])[-1]
         self.get_logger().info(
-            f"line delay auto: the {len(revised)} frames before the first estimate processed "
-            f"again with {info.get('line_delay_s', 0.0) * 1e6:.2f} us/row in "
+            f"line delay auto: the {len(revised)} frames so far processed again with the "
+            f"estimate, {info.get('line_delay_s', 0.0) * 1e6:.2f} us/row, in "
             f"{info.get('time_ms', 0.0) / 1e3:.1f} s; the path has their new poses")
 
     @property

@@ -101,8 +101,9 @@ PARAMETERS = {
         "report it in the diagnostics.", LINE_DELAY_MODES)),
     "line_delay_rerun": (False, _bool(
         "line_delay_mode auto: when the first estimate comes, process the frames so far again "
-        "with it (at most 300, kept as images until then) and publish their new poses as the "
-        "path; the odometry stays continuous. Takes a second or two on that frame, during "
+        "with it (at most 300, kept as images until then; again with a later estimate over 10 "
+        "% away, at most 3 times) and publish their new poses as the path; the odometry stays "
+        "continuous. Takes a second or two on that frame, during "
         "which the camera's frames are dropped (the newest is kept), so false (default) for a "
         "live camera; rsvo_replay does it unless --no-line-delay-rerun (the frames before the "
         "first estimate otherwise keep the map and scale the starting readout gave them).")),

@@ -1026,7 +1026,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --line-delay auto: go on from the first estimate as the live "
                         "node does, instead of processing the frames before it again with it "
                         "(the default here: at most PipelineOptions.line_delay_rerun_max_frames "
-                        "frames, once; trajectory.tum and the accuracy get their new poses)")
+                        "frames, again with a later estimate over 10 %% away, at most "
+                        "line_delay_reruns times; trajectory.tum and the accuracy get their new "
+                        "poses)")
     p.add_argument("--max-features", type=int, default=500, help="tracked corners (500)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N",
                    help="stop after the first N images (default: the whole bag)")
