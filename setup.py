@@ -19,7 +19,7 @@ setup(
                                           "rsvo_ros/ros/rsvo_node.yaml"]),
     ],
     install_requires=["setuptools"],
-    extras_require={"test": ["pytest", "pytest-timeout", "ruff"]},
+    extras_require={"test": ["pytest", "pytest-timeout", "pytest-xdist", "ruff"]},
     zip_safe=True,
     maintainer="rsvo_ros developers",
     maintainer_email="rsvo@example.com",

@@ -58,6 +58,32 @@ def colcon_build(workspace: Path) -> tuple[subprocess.CompletedProcess, Path]:
     return proc, workspace / "install" / "rsvo_ros"
 
 
+def copy_compiled_kernels(install: Path) -> int:
+    """Copy the checkout's numba cache (``rsvo_ros/**/__pycache__/*.nbi, *.nbc``) into an
+    installed copy of the package; numba keys it by the source file's content, so the
+    install's identical sources take it. Returns the number of files copied."""
+    import shutil
+
+    site = next(install.glob("lib/python3*/site-packages"))
+    copied = 0
+    for f in (REPO_ROOT / "rsvo_ros").glob("**/__pycache__/*.nb[ic]"):
+        dest = site / f.relative_to(REPO_ROOT)
+        if dest.parent.parent.is_dir():
+            dest.parent.mkdir(exist_ok=True)
+            shutil.copy2(f, dest)
+            copied += 1
+    return copied
+
+
+def ros_domain(offset: int = 0) -> int:
+    """A ROS_DOMAIN_ID for this test process: the two pytest-xdist workers draw from disjoint
+    ranges (10-109 and 110-209), so tests running side by side never share a domain; the
+    process id spreads concurrent suites on one machine."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
+    lo = 10 + 100 * (int(worker) % 2 if worker.isdigit() else 0)
+    return lo + (os.getpid() + offset) % 100
+
+
 def ros_test_env(domain_id: int) -> dict[str, str]:
     """Environment for a ROS process of a test: localhost discovery, a private domain."""
     env = dict(os.environ)

@@ -11,7 +11,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-from conftest import REPO_ROOT, colcon_build, ros_test_env
+from conftest import REPO_ROOT, colcon_build, ros_domain, ros_test_env
 
 CONSOLE_SCRIPTS = ("rsvo_node", "rsvo_replay", "rsvo_synth", "rsvo_bench", "rsvo_play")
 
@@ -107,7 +107,7 @@ print("received", len(got))
 @pytest.mark.ros
 def test_dds_smoke_two_nodes_exchange_odometry(tmp_path):
     """Two nodes in a private Context and ROS_DOMAIN_ID exchange nav_msgs/Odometry over DDS."""
-    domain = 40 + os.getpid() % 50
+    domain = ros_domain(3)
     script = tmp_path / "exchange.py"
     script.write_text(ODOM_EXCHANGE)
     t0 = time.monotonic()

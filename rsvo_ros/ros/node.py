@@ -735,6 +735,10 @@ def _debug_image(msg: Image, gray: np.ndarray, res: FrameResult) -> Image:
     return out
 
 
+# what a bad parameter raises while the node starts (main: exit code 2, named on stderr)
+STARTUP_ERRORS = (ValueError, ParameterException, InvalidParameterTypeException)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv if argv is None else argv
     if any(a in ("-h", "--help") for a in args[1:]):
@@ -752,7 +756,7 @@ def main(argv: list[str] | None = None) -> int:
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
-    except (ValueError, ParameterException, InvalidParameterTypeException) as exc:
+    except STARTUP_ERRORS as exc:
         print(f"rsvo_node: invalid parameter: {exc}", file=sys.stderr)
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import os
 import xml.etree.ElementTree as ET
 
 import pytest
+from conftest import ros_domain
 
 from rsvo_ros.ros.dds import (
     DEFAULT_SHM_SEGMENT_BYTES,
@@ -68,7 +68,7 @@ def test_table_rows():
 def test_large_images_cross_processes_with_the_profile(monkeypatch):
     """A publisher and a subscriber process that load the profile exchange every 1280x720
     image (a profile Fast DDS rejected, or transports that do not match, would lose them)."""
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(30 + os.getpid() % 10))
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain(5)))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     row = measure(1280, 720, "mono8", "large_images", frames=8, rate=10.0)
     assert row["received"] == 8, row

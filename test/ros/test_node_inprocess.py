@@ -4,7 +4,6 @@ the newest-frame policy. (The cross-process DDS graphs are in test_node.py.)"""
 from __future__ import annotations
 
 import dataclasses
-import os
 import threading
 import time
 
@@ -13,6 +12,7 @@ import numpy as np
 import pytest
 import rclpy
 import yaml
+from conftest import ros_domain
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import MultiThreadedExecutor
@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
 
-from rsvo_ros.ros.node import RsvoNode
+from rsvo_ros.ros.node import STARTUP_ERRORS, RsvoNode
 from rsvo_ros.ros.params import (
     DEFAULTS_FILE,
     PARAMETERS,
@@ -38,7 +38,7 @@ pytestmark = pytest.mark.ros
 @pytest.fixture
 def ros_context():
     ctx = rclpy.Context()
-    ctx.init(domain_id=200 + os.getpid() % 30)
+    ctx.init(domain_id=ros_domain())
     yield ctx
     ctx.try_shutdown()
 
@@ -728,12 +728,57 @@ def test_rectified_images_use_the_projection_and_no_lens(ros_context):
         h.close()
 
 
+def _p(text: str) -> Parameter:
+    """``name:=value`` as ``--ros-args -p`` would type it."""
+    name, value = text.split(":=")
+    return Parameter(name, value=yaml.safe_load(value))
+
+
+def test_every_invalid_parameter_is_refused_by_name(tmp_path):
+    """What rsvo_node exits 2 on at start-up (test_node.py runs three of them as processes):
+    the node refuses each with an exception that names the parameter."""
+    cases = ((["model:=fisheye"], "model"),
+             (["max_features:=3"], "max_features"),
+             (["klt_refine_window_px:=2"], "klt_refine_window_px"),
+             (["uncertain_rotation_deg:=-0.5"], "uncertain_rotation_deg"),
+             (["line_delay:=-1.0"], "line_delay"),
+             (["base_to_camera:=[0.0, 0.0]"], "base_to_camera"),
+             (["line_delay_mode:=auto", "model:=gs"], "line_delay_mode"),
+             (["lost_odometry:=zero"], "lost_odometry"),
+             (["line_delay_save_file:=/tmp/x.yaml"], "line_delay_save_file"),
+             (["line_delay_rerun:=true"], "line_delay_rerun needs"),
+             (["line_delay_mode:=auto", f"line_delay_save_file:={tmp_path}/no/such/x.yaml"],
+              "does not exist"),
+             ([f"trajectory_file:={tmp_path}/no/such/live.tum"], "trajectory_file"),
+             (["odom_topic:=rsvo odom"], "odom_topic: 'rsvo odom' is not a"),
+             (["path_topic:=/rsvo//path"], "repeated '/'"))
+    for args, word in cases:
+        ctx = rclpy.Context()
+        ctx.init(domain_id=ros_domain(11))
+        try:
+            with pytest.raises(STARTUP_ERRORS) as err:
+                RsvoNode(context=ctx, parameter_overrides=[_p(a) for a in args])
+            assert word in str(err.value), (args, str(err.value))
+        finally:
+            ctx.try_shutdown()
+
+
 class _Log:
+    """The node's logger, keeping what it is told (the worker thread warns too: the images
+    come without a camera info)."""
+
     def __init__(self):
         self.infos = []
+        self.others = []
 
     def info(self, text):
         self.infos.append(text)
+
+    def warning(self, text):
+        self.others.append(text)
+
+    def error(self, text):
+        self.others.append(text)
 
 
 @pytest.mark.parametrize("width,height,age_ms,hinted", [(1280, 720, 20.0, True),
@@ -770,7 +815,7 @@ def _node_with_params_file(path, domain_offset):
     """An rsvo_node started as `rsvo_node --ros-args --params-file path` would start."""
     ctx = rclpy.Context()
     ctx.init(args=["--ros-args", "--params-file", str(path)],
-             domain_id=200 + (os.getpid() + domain_offset) % 30)
+             domain_id=ros_domain(domain_offset))
     return ctx, RsvoNode(context=ctx)
 
 
