@@ -107,6 +107,11 @@ def within(row: dict, key: str = "estimate") -> bool:
     return abs(est - true) <= (2e-6 if true < 2e-5 else 0.10 * true)
 
 
+def near(key: str, rows: list[dict]) -> int:
+    """How many of ``rows`` have the ATE ``key`` within 10 % of the true line delay's."""
+    return sum(r[key] <= 1.10 * r["ate_true_m"] for r in rows)
+
+
 def summary(rows: list[dict]) -> str:
     """Per group: estimates within the target, and ATE with auto within 10 % of the true
     line delay's, over the rolling-shutter cases."""
@@ -114,9 +119,6 @@ def summary(rows: list[dict]) -> str:
     for group in dict.fromkeys(r["group"] for r in rows):
         rs = [r for r in rows if r["group"] == group and r["line_delay_true_s"] > 0]
         gs = [r for r in rows if r["group"] == group and r["line_delay_true_s"] == 0]
-        def near(key, group_rows):
-            return sum(r[key] <= 1.10 * r["ate_true_m"] for r in group_rows)
-
         zero = sum(within(r) for r in gs)
         reran = sum(within(r, "estimate_rerun") for r in rs)
         out.append(f"- {group}: line delay within 10 % on {sum(within(r) for r in rs)} of "
