@@ -76,12 +76,15 @@ def copy_compiled_kernels(install: Path) -> int:
 
 
 def ros_domain(offset: int = 0) -> int:
-    """A ROS_DOMAIN_ID for this test process: the two pytest-xdist workers draw from disjoint
-    ranges (10-109 and 110-209), so tests running side by side never share a domain; the
-    process id spreads concurrent suites on one machine."""
+    """A ROS_DOMAIN_ID for this test process: the pytest-xdist workers draw from disjoint
+    ranges of 10-209 (two workers: 10-109 and 110-209; four: 50 each), so tests running side
+    by side never share a domain; the process id spreads concurrent suites on one machine."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
-    lo = 10 + 100 * (int(worker) % 2 if worker.isdigit() else 0)
-    return lo + (os.getpid() + offset) % 100
+    count = os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")
+    count = min(max(int(count), 1), 20) if count.isdigit() else 1
+    size = 200 // count
+    index = int(worker) % count if worker.isdigit() else 0
+    return 10 + size * index + (os.getpid() + offset) % size
 
 
 def ros_test_env(domain_id: int) -> dict[str, str]:

@@ -116,3 +116,16 @@ def test_dds_smoke_two_nodes_exchange_odometry(tmp_path):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "received" in proc.stdout
     assert time.monotonic() - t0 < 120
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3, 4])
+def test_parallel_test_workers_never_share_a_ros_domain(monkeypatch, workers):
+    """Each pytest-xdist worker's ROS domains lie in a range of their own inside 10-209."""
+    monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", str(workers))
+    taken: list[set[int]] = []
+    for w in range(workers):
+        monkeypatch.setenv("PYTEST_XDIST_WORKER", f"gw{w}")
+        ids = {ros_domain(offset) for offset in range(250)}
+        assert min(ids) >= 10 and max(ids) <= 209
+        assert all(not ids & other for other in taken), f"worker {w} of {workers}"
+        taken.append(ids)
