@@ -304,3 +304,121 @@ def parabola_min(x: np.ndarray, y: np.ndarray) -> float | None:
     den = y0 - 2 * y1 + y2
     d = 0.5 * (y0 - y2) / den if den > 0 else 0.0
     return float(x[j] + np.clip(d, -0.5, 0.5) * (x[1] - x[0]))
+
+
+# ---------------------------------------------------------------------- refining an estimate
+#
+# The window BA fixes each keyframe's turn rate only relative to the others: all of a window's
+# rates shifted together, with its landmarks sheared to match, explain the images almost as
+# well (rolling-shutter SfM with one readout direction; docs/notebook.md, "The map's shear").
+# Frames tracked against the map inherit that shift. Over a few frames the turn rates during
+# the readouts and the turns between the frames' poses measure the same turning, so the
+# tracked frames' mean world rate minus their mean turn rate is the map's shift
+# (:func:`map_rate_shear`); the window removes it (``WindowOptions.shear_from_turns``).
+# Then, with the line delay the odometry runs at, ``tau0 w`` summed over blocks of a few frames
+# (what the images measure) against the turn over the same frames gives the line delay
+# (:func:`refine_line_delay`). Removing the shift pulls that estimate towards ``tau0``, so it
+# refines a first estimate (rsvo_calibrate), it does not replace it.
+
+MIN_SHEAR_FRAMES = 10
+
+
+def map_rate_shear(stamps_ns: np.ndarray, R: np.ndarray, w: np.ndarray) -> np.ndarray | None:
+    """(3,) world-frame turn rate the tracked frames (stamps (N,) ns, ``R`` (N, 3, 3) world <-
+    camera, ``w`` (N, 3) camera-frame rates) have beyond the turns between their poses; None
+    with fewer than ``MIN_SHEAR_FRAMES`` frames or a gap (an interval over 1.6x the median)."""
+    stamps_ns = np.asarray(stamps_ns, np.int64)
+    if len(stamps_ns) < MIN_SHEAR_FRAMES:
+        return None
+    dt = np.diff(stamps_ns) * 1e-9
+    if not (dt > 0).all() or dt.max() > 1.6 * np.median(dt):
+        return None
+    U = np.einsum("nij,nj->ni", R, w)
+    turns = so3_log(np.einsum("nji,njk->nik", R[:-1], R[1:]))
+    D = np.einsum("nij,nj->ni", R[:-1], turns) / dt[:, None]
+    shear = 0.5 * (U[:-1].mean(axis=0) + U[1:].mean(axis=0)) - D.mean(axis=0)
+    return shear if np.isfinite(shear).all() else None
+
+
+@dataclass
+class RefinedLineDelay:
+    """:func:`refine_line_delay`'s result; ``status`` "refined" or "not observable"."""
+
+    status: str
+    line_delay_s: float | None = None
+    std_s: float | None = None
+    blocks: int = 0
+    frames: int = 0
+    reason: str = ""
+
+    def as_dict(self) -> dict:
+        return {"status": self.status, "line_delay_s": self.line_delay_s, "std_s": self.std_s,
+                "blocks": self.blocks, "frames": self.frames, "reason": self.reason}
+
+
+@dataclass
+class RefineOptions:
+    block: int = 5  # frames summed per block
+    min_blocks: int = 6
+    min_rotation_rad_s: float = 0.05  # rms turn rate over the blocks below this: not observable
+    bootstrap: int = 200
+    seed: int = 0
+
+
+def refine_line_delay(stamps_ns: np.ndarray, R: np.ndarray, w: np.ndarray,
+                      line_delays: np.ndarray,
+                      options: RefineOptions | None = None) -> RefinedLineDelay:  # fmt: skip
+    """The line delay from tracked frames (as :func:`map_rate_shear`; ``line_delays`` (N,) the
+    line delay each frame was tracked with): over blocks of consecutive frames without a gap,
+    the world sums of ``line_delay w`` regressed (through zero) on the sums of the turn rates
+    between the poses; the uncertainty is the bootstrap std over the blocks."""
+    o = options or RefineOptions()
+    stamps_ns = np.asarray(stamps_ns, np.int64)
+    n = len(stamps_ns)
+    out = RefinedLineDelay("not observable", frames=n)
+    if n < o.block * o.min_blocks + 2:
+        out.reason = f"{n} tracked frames, too few for {o.min_blocks} blocks of {o.block}"
+        return out
+    line_delays = np.asarray(line_delays, float)
+    if not (line_delays > 0).any():
+        out.reason = "the frames ran with a zero line delay: nothing to refine"
+        return out
+    dt_ns = np.diff(stamps_ns)
+    interval = float(np.median(dt_ns))
+    U = np.einsum("nij,nj->ni", R, w) * line_delays[:, None]
+    turns = so3_log(np.einsum("nji,njk->nik", R[:-1], R[1:]))
+    D = np.einsum("nij,nj->ni", R[:-1], turns) / (dt_ns[:, None] * 1e-9)
+    gap = (dt_ns <= 0) | (dt_ns > 1.5 * interval)
+    SU, SD = [], []
+    for a in range(1, n - o.block - 1, o.block):
+        if gap[a - 1:a + o.block].any():
+            continue
+        SU.append(U[a:a + o.block].sum(axis=0))
+        # the turns around the block's frames: each frame's rate between its two intervals
+        SD.append(0.5 * (D[a - 1:a + o.block - 1].sum(axis=0) + D[a:a + o.block].sum(axis=0)))
+    out.blocks = len(SU)
+    if len(SU) < o.min_blocks:
+        out.reason = f"{len(SU)} blocks of {o.block} frames without a gap"
+        return out
+    SU, SD = np.array(SU), np.array(SD)
+    rms = float(np.sqrt(np.mean(np.sum(SD**2, axis=1)))) / o.block
+    if not np.isfinite(rms) or rms < o.min_rotation_rad_s:
+        out.reason = f"too little rotation ({rms:.3f} rad/s rms over the blocks)"
+        return out
+
+    def slope(idx: np.ndarray) -> float:
+        den = float(np.sum(SD[idx] ** 2))
+        return float(np.sum(SU[idx] * SD[idx])) / den if den > 0 else float("nan")
+
+    tau = slope(np.arange(len(SU)))
+    if not np.isfinite(tau) or tau <= 0:
+        out.reason = f"the readouts' turning does not follow the turns (slope {tau:.3g})"
+        return out
+    rng = np.random.default_rng(o.seed)
+    boot = [slope(rng.integers(0, len(SU), len(SU))) for _ in range(o.bootstrap)]
+    out.status = "refined"
+    out.line_delay_s = tau
+    out.std_s = float(np.nanstd(boot)) if boot else float("nan")
+    out.reason = (f"{tau * 1e6:.2f} +- {out.std_s * 1e6:.2f} us/row from {len(SU)} blocks of "
+                  f"{o.block} frames")
+    return out

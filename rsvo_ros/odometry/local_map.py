@@ -175,6 +175,10 @@ class LocalMap:
         self.focal = float(focal)
         self.options = options or MapOptions()
         self.last_problem: WindowProblem | None = None
+        # (3,) world turn rate the keyframes' rates have too much (the map's shear, set by the
+        # window before each BA): their priors are centred on their own rates minus it (None:
+        # on the neighbours' central difference)
+        self.rate_shift: np.ndarray | None = None
         self.keyframes: list[KeyFrame] = []
         self.landmarks: dict[int, Landmark] = {}
         self._index: dict[int, dict[int, int]] = {}  # keyframe id -> track id -> obs index
@@ -327,6 +331,10 @@ class LocalMap:
             sv = max(o.prior_v_rel * float(np.linalg.norm(v_t)), o.prior_v_floor)
             p2[k] = np.repeat([1.0 / o.prior_w_rad_s**2, 1.0 / sv**2], 3)
         R, p, w, v, acc = self._state_arrays()
+        if self.rate_shift is not None:
+            has = p2[:, 0] > 0
+            own = w - np.einsum("kji,j->ki", R, self.rate_shift)  # R_k^T (R_k w_k - shift)
+            mu[has, :3] = own[has]
         anchor_rows = [self.keyframes[k].obs.rows[self._index[self.keyframes[k].id][t]]
                        for k, t in zip(lm_anchor.tolist(), lm_ids, strict=True)]
         return WindowProblem(

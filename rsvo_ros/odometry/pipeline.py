@@ -15,6 +15,7 @@ Poses are ``T_world_camera`` of each frame's row-0 camera (CONTRACTS.md).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import threading
 import time
@@ -30,6 +31,9 @@ from rsvo_ros.odometry.line_delay import (
     LineDelayCalibrator,
     LineDelayEstimate,
     LineDelayOptions,
+    RefinedLineDelay,
+    RefineOptions,
+    refine_line_delay,
 )
 from rsvo_ros.odometry.pairwise import (
     BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
@@ -117,6 +121,12 @@ class PipelineOptions:
     # 1.03 and 1.00 of the true line delay's; the estimate within 10 %: 19, 19; 7, 6)
     line_delay_reruns: int = 3
     line_delay_rerun_tolerance: float = 0.1
+    # a given line delay (a first estimate) refined: the window removes the map's shear
+    # (WindowOptions.shear_from_turns) and refined_line_delay() regresses the tracked frames'
+    # turn rates during the readout on the turns between them (line_delay.refine_line_delay;
+    # rsvo_calibrate's second pass). RS model, window backend, not with line_delay_auto
+    line_delay_refine: bool = False
+    line_delay_refinement: RefineOptions = field(default_factory=RefineOptions)
     # which way the rolling shutter reads the images as they arrive (core/readout.py): "down"
     # (rows top to bottom, CONTRACTS.md), "up" (an image turned by 180 degrees: a camera
     # mounted upside down), "right" / "left" (columns: an image turned by 90 degrees, a phone
@@ -182,6 +192,10 @@ class OdometryPipeline:
         if self.options.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.options.backend!r}")
         check_readout(self.options.readout)
+        o = self.options
+        if o.line_delay_refine and (o.line_delay_auto or o.model != "rs" or o.backend != "window"):
+            raise ValueError("line_delay_refine refines a given line delay: it needs the RS "
+                             "model, the window backend and line_delay_auto off")
         self._image_size: tuple[int, int] | None = None  # (width, height) of the last image
         self.set_camera(K, D, line_delay)
         tracker = self.options.tracker
@@ -211,6 +225,8 @@ class OdometryPipeline:
             self.line_delay_history: list[dict] = []
             # the re-runs of the frames before the first estimate (and of later ones)
             self.line_delay_reruns: list[dict] = []
+            # line_delay_refine: every posed frame's (stamp, R, w, line delay), whole run
+            self.refine_log: list[tuple[int, np.ndarray, np.ndarray, float]] = []
             self._calibration_thread: threading.Thread | None = None
             self._calibration_result: LineDelayEstimate | None = None
             if self.options.line_delay_auto and self.options.model == "rs":
@@ -222,6 +238,22 @@ class OdometryPipeline:
                         / max(2.0 * float(centre), 1.0)
         if changed:
             self.reset()  # the backends hold the camera: a new camera starts a new trajectory
+
+    @property
+    def _refining(self) -> bool:
+        return self.options.line_delay_refine
+
+    def refined_line_delay(self) -> RefinedLineDelay:
+        """line_delay_refine: the line delay from the frames tracked so far
+        (:func:`~rsvo_ros.odometry.line_delay.refine_line_delay`)."""
+        if not self._refining:
+            return RefinedLineDelay("off", reason="line_delay_refine is off")
+        log = list(self.refine_log)
+        if not log:
+            return RefinedLineDelay("not observable", reason="no frame was tracked by the map")
+        stamps, R, w, taus = zip(*log, strict=True)
+        return refine_line_delay(np.array(stamps), np.array(R), np.array(w), np.array(taus),
+                                 self.options.line_delay_refinement)
 
     def _same_camera(self, K: np.ndarray, D: LensModel | None, line_delay: float) -> bool:
         return D == self.D and np.array_equal(K, self.K) and line_delay == self.given_line_delay
@@ -247,7 +279,10 @@ class OdometryPipeline:
         self.chain = PairwiseChain(self.K, self.D, self.line_delay, o.model, o.mode, o.ransac,
                                    o.lm, o.initial_scale, o.motion_prior, o.max_scale_change,
                                    o.seed, o.rotation_only_parallax_px, uncertain)  # fmt: skip
-        self.window = WindowOdometry(self.K, tau, o.window, o.model, o.ransac, o.lm,
+        window_options = o.window
+        if self._refining:
+            window_options = dataclasses.replace(o.window, shear_from_turns=True)
+        self.window = WindowOdometry(self.K, tau, window_options, o.model, o.ransac, o.lm,
                                      o.initial_scale, o.motion_prior, o.seed)  # fmt: skip
         self.window.calibrator = self.calibrator  # kept across resets: the same camera
         self._window_was_initialising = True
@@ -534,6 +569,8 @@ class OdometryPipeline:
         hint = self.chain.T_world_cam.copy() if bootstrap else None
         out = self.window.track(stamp_ns, obs, hint)
         state: FrameState | None = out.state
+        if self._refining and out.status == "posed" and state is not None:
+            self.refine_log.append((stamp_ns, state.R.copy(), state.w.copy(), self.line_delay))
         if out.status != "posed" and step is not None and step.status == "posed":
             self.T_world_cam, self.covariance = self.chain.T_world_cam, self.chain.covariance
             return result("posed", f"pairwise while the map initialises ({out.reason})",

@@ -37,6 +37,7 @@ from rsvo_ros.odometry.frame import (
     extrapolate,
     interval_velocity,
 )
+from rsvo_ros.odometry.line_delay import MIN_SHEAR_FRAMES, map_rate_shear
 from rsvo_ros.odometry.local_map import BAReport, Landmark, LocalMap, MapOptions, acc_prior_p2
 from rsvo_ros.odometry.relocalize import LandmarkMemory, guided_matches, match_memory
 from rsvo_ros.twoview import LMOptions, RansacOptions, estimate_relative_pose
@@ -50,6 +51,7 @@ FOCAL_REF_PX = 1000.0  # pixel thresholds below are given at this focal length a
 # translation parallax (the first map's parallax is not rotation-compensated: a walk's head bob
 # reaches 80 px of it in about 20 frames, translation alone in 100 or more)
 REINIT_PARALLAX_FACTOR = 2.0
+SHEAR_FRAMES_KEPT = 900  # tracked frames kept for the map's shear (30 s at 30 Hz)
 REFOUND_REASON = "re-found the map"  # a frame's reason where descriptors found the map again
 
 
@@ -130,6 +132,13 @@ class WindowOptions:
     # refined keyframe states kept for the keyframe path (None: all, as the replay's
     # keyframes.tum needs; a live node keeps its path length, so memory stays flat)
     keyframe_log_max: int | None = None
+    # each window BA's keyframe turn-rate priors centred on the keyframes' own rates minus the
+    # map's shear (line_delay.map_rate_shear over the tracked frames of the window's span)
+    # instead of on the neighbours' central difference: the window's common turn rate, which
+    # the images do not fix, held to the turns between the frames. For refining a line delay
+    # (PipelineOptions.line_delay_refine); off otherwise (ATE unchanged, and with the line
+    # delay still unknown it pulls the estimate to the one the odometry runs with)
+    shear_from_turns: bool = False
     # Re-finding the map (odometry/relocalize.py): the landmarks the window placed are
     # remembered (world point, ORB descriptor; the newest reloc_memory); a frame that cannot
     # be tracked, and the keyframes of a map rebuilt after a loss for reloc_window_s, match
@@ -240,6 +249,8 @@ class WindowOdometry:
         self._err_median = np.nan  # the last motion-only refinement's
         self._weak = False  # the last frame's tracking was weak (async: map synchronously)
         self._hints: dict[int, np.ndarray] = {}  # stamp -> the chain's row-0 pose
+        # the last tracked frames' (stamp, R, w): the map's shear (shear_from_turns)
+        self._rates: deque = deque(maxlen=SHEAR_FRAMES_KEPT)
         if getattr(self, "_mapper", None) is not None:
             self._mapper.close()
         self._mapper = Mapper(self) if self.options.async_mapping else None
@@ -378,8 +389,13 @@ class WindowOdometry:
         result.ba_moved = [moved for moved, _ in self._picked] + result.ba_moved
         if result.ba is None and self._picked:
             result.ba = self._picked[-1][1]
-        if self.calibrator is not None and result.status == "posed" and result.state is not None:
-            self.calibrator.add_pose(result.state)
+        if result.status == "posed" and result.state is not None:
+            if self.calibrator is not None:
+                self.calibrator.add_pose(result.state)
+            if self.options.shear_from_turns:
+                if self._rates and stamp_ns <= self._rates[-1][0]:
+                    self._rates.clear()  # time went back: a new trajectory
+                self._rates.append((stamp_ns, result.state.R.copy(), result.state.w.copy()))
         return result
 
     def _newest_keyframe(self) -> KeyFrame | None:
@@ -724,6 +740,7 @@ class WindowOdometry:
             if kf is not None and not optimize_only:
                 self.map.add_keyframe(kf)
             self.map.slide()
+            self.map.rate_shift = self._map_shear() if self.options.shear_from_turns else None
             report = self.map.optimize()
             if self.calibrator is not None and self.map.last_problem is not None:
                 self.calibrator.add_window(self.map.last_problem, self.row_ref)
@@ -739,6 +756,18 @@ class WindowOdometry:
             # replaced whole, never changed in place: the viewers read it without waiting
             self.keyframe_log = log
         return report, points
+
+    def _map_shear(self) -> np.ndarray | None:
+        """The map's shear over the window's span (line_delay.map_rate_shear), None without
+        enough tracked frames there."""
+        if len(self.map.keyframes) < 2:
+            return None
+        first, last = self.map.keyframes[0].state.stamp_ns, self.map.keyframes[-1].state.stamp_ns
+        span = [r for r in list(self._rates) if first <= r[0] <= last]  # tracking appends
+        if len(span) < MIN_SHEAR_FRAMES:
+            return None
+        stamps, R, w = zip(*span, strict=True)
+        return map_rate_shear(np.array(stamps), np.array(R), np.array(w))
 
     # ------------------------------------------------------------------ re-finding the map
 

@@ -1,8 +1,11 @@
 """rsvo_calibrate: the line delay of a rolling-shutter camera from a bag of its video.
 
-Runs the odometry over the bag with ``line_delay: auto`` (RS model, window backend) and prints
-the estimate with its uncertainty, the readout time (line delay x image height) and the readout
-as a fraction of the frame interval; writes a ROS 2 parameter file the node loads with
+Runs the odometry over the bag with ``line_delay: auto`` (RS model, window backend), then
+(unless ``--no-refine``) a second time at that estimate with the map's shear removed, and
+refines it from the frames' turn rates during the readout against the turns between them
+(``PipelineOptions.line_delay_refine``; README, "Unknown line delay"). Prints the estimate with
+its uncertainty, the readout time (line delay x image height) and the readout as a fraction of
+the frame interval; writes a ROS 2 parameter file the node loads with
 ``rsvo_node --ros-args --params-file FILE``. The camera must move (rotate) during the bag.
 Exit codes: 0 estimated, 1 the bag cannot be used or the line delay is not observable in it,
 2 bad arguments.
@@ -49,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which way the rolling shutter reads the images as they are in the bag "
                         "(rsvo_replay --readout-direction): down (default), up, right, left; "
                         "the estimate is then per line read")
+    p.add_argument("--no-refine", action="store_true",
+                   help="keep the first estimate (one pass) instead of refining it in a second "
+                        "pass over the bag (README, \"Unknown line delay\")")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -63,26 +69,36 @@ def main(argv: list[str] | None = None) -> int:
         print("rsvo_calibrate: --uncalibrated-focal-factor must be in [0, 10] image widths",
               file=sys.stderr)
         return EXIT_USAGE
-    with tempfile.TemporaryDirectory(prefix="rsvo_calibrate_") as tmp:
-        cfg = ReplayConfig(args.bag, Path(tmp) / "replay", "rs", args.image_topic,
-                           args.camera_info_topic, progress=not args.no_progress,
-                           # the estimate as the node makes it: the re-runs of the first
-                           # frames mend the replay's trajectory, not the estimate (README)
-                           options=PipelineOptions(line_delay_auto=True,
-                                                   readout=args.readout_direction,
-                                                   line_delay_rerun_max_frames=0),
-                           max_frames=args.max_frames, camera_file=args.camera_file,
-                           camera_entry=args.camera_entry,
+
+    def run(out: Path, options: PipelineOptions, line_delay: float | None = None) -> dict:
+        cfg = ReplayConfig(args.bag, out, "rs", args.image_topic, args.camera_info_topic,
+                           line_delay=line_delay, progress=not args.no_progress,
+                           options=options, max_frames=args.max_frames,
+                           camera_file=args.camera_file, camera_entry=args.camera_entry,
                            uncalibrated_focal_factor=args.uncalibrated_focal_factor)  # fmt: skip
+        return replay(cfg)
+
+    with tempfile.TemporaryDirectory(prefix="rsvo_calibrate_") as tmp:
         try:
-            summary = replay(cfg)
+            # the estimate as the node makes it: the re-runs of the first frames mend the
+            # replay's trajectory, not the estimate (README)
+            summary = run(Path(tmp) / "replay",
+                          PipelineOptions(line_delay_auto=True, readout=args.readout_direction,
+                                          line_delay_rerun_max_frames=0))  # fmt: skip
+            e = summary["line_delay_auto"]
+            refined = None
+            if not args.no_refine and e["line_delay_s"]:  # 0: a global shutter, kept
+                second = run(Path(tmp) / "refine",
+                             PipelineOptions(line_delay_refine=True,
+                                             readout=args.readout_direction),
+                             line_delay=float(e["line_delay_s"]))  # fmt: skip
+                refined = second["line_delay_refined"]
         except ReplayError as exc:
             print(f"rsvo_calibrate: {exc}", file=sys.stderr)
             return EXIT_FAILED
         except ValueError as exc:
             print(f"rsvo_calibrate: {exc}", file=sys.stderr)
             return EXIT_USAGE
-    e = summary["line_delay_auto"]
     if e["line_delay_s"] is None:
         print(f"rsvo_calibrate: no estimate: {e['status']} ({e['reason']}); the camera must "
               "move and rotate during the bag", file=sys.stderr)
@@ -91,6 +107,17 @@ def main(argv: list[str] | None = None) -> int:
           f"us/row, readout {e['readout_s'] * 1e3:.2f} ms ({e['readout_fraction']:.3f} +- "
           f"{e['std_fraction']:.3f} frame intervals); {e['status']} from {e['windows']} "
           f"windows of {summary['frames_in']} frames")
+    if refined is not None:
+        if refined["status"] == "refined":
+            first = dict(e)
+            e = refined_estimate(e, refined)
+            print(f"rsvo_calibrate: refined in a second pass: line delay "
+                  f"{e['line_delay_s'] * 1e6:.2f} +- {e['std_s'] * 1e6:.2f} us/row, readout "
+                  f"{e['readout_s'] * 1e3:.2f} ms ({e['readout_fraction']:.3f} frame intervals; "
+                  f"first {first['line_delay_s'] * 1e6:.2f} us/row; {refined['reason']})")
+        else:
+            print(f"rsvo_calibrate: kept the first estimate: the second pass could not refine "
+                  f"it ({refined['reason']})")
     if e["bag_line_delay_s"] is not None:
         print(f"rsvo_calibrate: the bag records {e['bag_line_delay_s'] * 1e6:.2f} us/row")
     args.output.write_text(params_yaml(e, f"rsvo_calibrate {args.bag}",
@@ -98,6 +125,19 @@ def main(argv: list[str] | None = None) -> int:
     print(f"rsvo_calibrate: wrote {args.output} (rsvo_node --ros-args --params-file "
           f"{args.output})")
     return EXIT_OK
+
+
+def refined_estimate(first: dict, refined: dict) -> dict:
+    """The first estimate's dict (LineDelayEstimate.as_dict) with the second pass's refined
+    line delay and its std (the readout and the fractions scaled with it)."""
+    out = dict(first)
+    f = refined["line_delay_s"] / first["line_delay_s"]
+    out.update(status="refined", line_delay_s=refined["line_delay_s"], std_s=refined["std_s"],
+               readout_s=first["readout_s"] * f,
+               readout_fraction=first["readout_fraction"] * f,
+               std_fraction=first["readout_fraction"] * refined["std_s"] / first["line_delay_s"],
+               first_line_delay_s=first["line_delay_s"])
+    return out
 
 
 if __name__ == "__main__":

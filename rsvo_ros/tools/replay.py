@@ -550,6 +550,10 @@ def replay(cfg: ReplayConfig) -> dict:
             "reruns": pipeline.line_delay_reruns,
             "frames_revised": revised,
         }
+    if pipeline is not None and pipeline.options.line_delay_refine:
+        # the given line delay refined from the frames' turn rates (rsvo_calibrate)
+        summary["line_delay_refined"] = {**pipeline.refined_line_delay().as_dict(),
+                                         "given_line_delay_s": pipeline.line_delay}
     if gt:
         gt_info = {"topic": gt_topic, "type": topics[gt_topic].msgtype, "poses": len(gt),
                    "resampled": False}

@@ -231,3 +231,104 @@ def test_the_frames_before_the_first_estimate_run_again_with_it():
     assert off.line_delay == first and off.process(*frames[4]).revised is None
     assert off.line_delay_reruns == []
     off.close()
+
+
+# ---------------------------------------------------------------- refining a given line delay
+
+def _turning_frames(n=150, rate_hz=30.0, tau0=4e-5, tau_true=5e-5, shift=None, seed=0):
+    """Tracked frames of a camera turning smoothly about all three axes: stamps, R (world <-
+    camera), the camera-frame rates tracking would measure with ``tau0`` for a camera whose
+    line delay is ``tau_true`` (the images measure ``tau w``), plus a world ``shift`` (a map
+    shear)."""
+    rng = np.random.default_rng(seed)
+    from rsvo_ros.core.geometry import so3_exp
+
+    t = np.arange(n) / rate_hz
+    amp, freq = np.array([0.3, 0.5, 0.2]), np.array([0.4, 0.3, 0.5])
+
+    def phi(tt):  # world rotation vector of a slow swing, small enough to add up
+        return amp / (2 * np.pi * freq) * np.sin(2 * np.pi * freq * tt)
+
+    R = np.array([so3_exp(phi(tt)) for tt in t])
+    w_world = amp * np.cos(2 * np.pi * freq * t[:, None])  # d phi / dt
+    if shift is not None:
+        w_world = w_world + shift
+    w_cam = np.einsum("nji,nj->ni", R, w_world) * tau_true / tau0
+    w_cam += rng.normal(0.0, 0.01, w_cam.shape)
+    return (t * 1e9).round().astype(np.int64), R, w_cam
+
+
+def test_refine_regresses_the_readouts_turning_on_the_turns():
+    from rsvo_ros.odometry.line_delay import refine_line_delay
+
+    stamps, R, w = _turning_frames(tau0=4e-5, tau_true=5e-5)
+    r = refine_line_delay(stamps, R, w, np.full(len(stamps), 4e-5))
+    assert r.status == "refined" and r.blocks >= 25
+    assert abs(r.line_delay_s - 5e-5) < 0.03 * 5e-5 and 0 < r.std_s < 0.2 * 5e-5
+    # each frame's own line delay counts (the second half tracked at 6e-5 sees less w)
+    taus = np.where(np.arange(len(stamps)) < 75, 4e-5, 6e-5)
+    w2 = w * (4e-5 / taus)[:, None]
+    assert abs(refine_line_delay(stamps, R, w2, taus).line_delay_s - 5e-5) < 0.03 * 5e-5
+
+
+def test_refine_says_why_it_cannot():
+    from rsvo_ros.odometry.line_delay import refine_line_delay
+
+    stamps, R, w = _turning_frames()
+    zero = refine_line_delay(stamps, R, w, np.zeros(len(stamps)))
+    assert zero.status == "not observable" and "zero line delay" in zero.reason
+    few = refine_line_delay(stamps[:20], R[:20], w[:20], np.full(20, 4e-5))
+    assert few.status == "not observable" and "too few" in few.reason
+    still = refine_line_delay(stamps, np.repeat(np.eye(3)[None], len(stamps), 0),
+                              np.zeros_like(w), np.full(len(stamps), 4e-5))
+    assert still.status == "not observable" and "too little rotation" in still.reason
+    # gaps (dropped frames) split the blocks: every second frame missing leaves none
+    gappy = np.r_[0:150:2]
+    g = refine_line_delay(stamps[gappy] + (np.arange(len(gappy)) % 7 == 0) * 50_000_000,
+                          R[gappy], w[gappy], np.full(len(gappy), 4e-5))
+    assert g.blocks < 25
+
+
+def test_the_map_shear_is_the_frames_rate_beyond_their_turns():
+    from rsvo_ros.odometry.line_delay import map_rate_shear
+
+    shift = np.array([0.05, -0.12, 0.03])
+    stamps, R, w = _turning_frames(n=30, tau0=5e-5, tau_true=5e-5, shift=shift)
+    assert np.allclose(map_rate_shear(stamps, R, w), shift, atol=0.01)
+    stamps, R, w = _turning_frames(n=30, tau0=5e-5, tau_true=5e-5)
+    assert np.allclose(map_rate_shear(stamps, R, w), 0.0, atol=0.01)
+    assert map_rate_shear(stamps[:9], R[:9], w[:9]) is None  # too few frames
+    gap = np.r_[0:10, 12:30]
+    assert map_rate_shear(stamps[gap], R[gap], w[gap]) is None  # a dropped frame's gap
+
+
+def test_refining_runs_the_window_without_the_map_shear():
+    """line_delay_refine: the window's BA priors centred on each keyframe's own rate minus the
+    measured shear, every posed frame logged, and the refined line delay near the truth from a
+    first estimate 20 % off; refused with line_delay_auto."""
+    cfg = SynthConfig(frames=120, motion="walk", severity=1.0, seed=5, line_delay=5e-5)
+    renderer = SequenceRenderer(cfg)
+    pipe = OdometryPipeline(renderer.K, None, 4e-5, PipelineOptions(line_delay_refine=True))
+    for f in renderer:
+        pipe.process(round(f.stamp * 1e9), f.image)
+    pipe.close()
+    assert pipe.window.options.shear_from_turns
+    m = pipe.window.map
+    assert m.rate_shift is not None and np.isfinite(m.rate_shift).all()
+    shift = np.array([0.1, -0.2, 0.05])
+    m.rate_shift = shift
+    prob = m.problem()
+    has = prob.prior_p2[:, 0] > 0
+    want = prob.w - np.einsum("kji,j->ki", prob.R, shift)
+    assert has.sum() >= 2 and np.allclose(prob.prior_mu[has, :3], want[has])
+    m.rate_shift = None  # off: the neighbours' central difference again
+    assert not np.allclose(m.problem().prior_mu[has, :3], want[has])
+    assert len(pipe.refine_log) > 90  # the frames tracked against the map
+    r = pipe.refined_line_delay()
+    assert r.status == "refined" and abs(r.line_delay_s - 5e-5) < 0.15 * 5e-5, r
+    with pytest.raises(ValueError, match="line_delay_refine"):
+        OdometryPipeline(renderer.K, None, 0.0,
+                         PipelineOptions(line_delay_refine=True, line_delay_auto=True))
+    off = OdometryPipeline(renderer.K, None, 4e-5)
+    assert not off.window.options.shear_from_turns
+    assert off.refined_line_delay().status == "off"

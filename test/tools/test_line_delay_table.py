@@ -4,17 +4,20 @@ from __future__ import annotations
 
 import matplotlib.image as mpimg
 
-from rsvo_ros.tools.line_delay_table import plot, summary, within
+from rsvo_ros.tools.line_delay_table import plot, summary, table, within
 
 
-def _row(group, true, est, ate_auto=0.1, ate_true=0.1, history=(), ate_two_pass=None):
+def _row(group, true, est, ate_auto=0.1, ate_true=0.1, history=(), ate_two_pass=None,
+         refined=None):
     return {"case": f"{group}{true}", "group": group, "line_delay_true_s": true,
             "estimate": {"line_delay_s": est, "std_s": None if est is None else 1e-6},
             "ate_auto_m": ate_auto, "ate_true_m": ate_true, "history": list(history),
             "ate_two_pass_m": ate_auto if ate_two_pass is None else ate_two_pass,
             # with the re-runs of the first frames, and as the node runs (no re-runs)
             "estimate_rerun": {"line_delay_s": est, "std_s": None if est is None else 1e-6},
-            "ate_auto_node_m": 2 * ate_auto}
+            "ate_auto_node_m": 2 * ate_auto,
+            # rsvo_calibrate's: refined in a second pass
+            "estimate_refined": {"line_delay_s": est if refined is None else refined}}
 
 
 def test_within_uses_the_relative_target_and_the_absolute_one_below_20_us():
@@ -26,13 +29,23 @@ def test_within_uses_the_relative_target_and_the_absolute_one_below_20_us():
 
 def test_summary_counts_per_group_and_the_figure_is_written(tmp_path):
     rows = [_row("held out", 5e-5, 5.2e-5, history=[[60, 7e-5], [100, 5.2e-5]]),
-            _row("held out", 1e-4, 1.3e-4, ate_auto=0.2, ate_two_pass=0.105),
+            _row("held out", 1e-4, 1.3e-4, ate_auto=0.2, ate_two_pass=0.105, refined=1.05e-4),
             _row("held out", 0.0, 0.0), _row("fresh", 3e-5, None)]
     text = summary(rows)
     assert "- held out: line delay within 10 % on 1 of 2 rolling-shutter bags (with the " \
-           "re-runs: 1), ATE auto within 10 % of ATE true on 1 of 2 (as the node, without the " \
+           "re-runs: 1; rsvo_calibrate's, refined in a second pass: 2; global shutter 1 of 1), " \
+           "ATE auto within 10 % of ATE true on 1 of 2 (as the node, without the " \
            "re-runs: 0; two passes: 2); global shutter within 2 us/row on 1 of 1, its ATE auto " \
            "within 10 % on 1 (as the node: 0)" in text
     assert "- fresh: line delay within 10 % on 0 of 1" in text
+    # rsvo_calibrate's refined estimate has a column of its own
+    rows[1]["estimate"]["reason"] = rows[1]["estimate_rerun"]["reason"] = ""
+    for r in rows:
+        r["estimate"]["status"] = "estimated"
+        r["ate_zero_m"] = 0.3
+    rows[3]["estimate"]["reason"] = "collecting"
+    md = table(rows)
+    assert "| rsvo_calibrate (refined) |" in md.splitlines()[0]
+    assert "| 105.0 (+5 %) |" in md.splitlines()[3]
     plot(tmp_path / "line_delay.png", rows)
     assert mpimg.imread(tmp_path / "line_delay.png").shape[1] > 500

@@ -708,14 +708,26 @@ def test_rsvo_calibrate_writes_a_parameter_file_the_node_can_load(walk_bag, tmp_
 
     bag = walk_bag
     out = tmp_path / "calib.yaml"
-    assert calibrate_main([str(bag), "--output", str(out), "--no-progress"]) == 0
+    assert calibrate_main([str(bag), "--output", str(out), "--no-progress",
+                           "--no-refine"]) == 0
     printed = capsys.readouterr().out
     assert "us/row" in printed and "frame intervals" in printed and "records 50.00" in printed
+    assert "second pass" not in printed
     params = yaml.safe_load(out.read_text())["rsvo_node"]["ros__parameters"]
     assert params["line_delay_mode"] == "fixed"
     # 67.4 us/row for 50 (55.4 before the first map waited for translation parallax, which
     # starts this walk's map later): the estimate's spread on a 120-frame walk
-    assert 0.7 * 5e-5 < params["line_delay"] < 1.4 * 5e-5
+    first = params["line_delay"]
+    assert 0.7 * 5e-5 < first < 1.4 * 5e-5
+    # by default refined in a second pass over the bag: that value goes into the file
+    refined_out = tmp_path / "refined.yaml"
+    assert calibrate_main([str(bag), "--output", str(refined_out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "refined in a second pass" in printed and f"first {first * 1e6:.2f} us/row" in printed
+    text = refined_out.read_text()
+    refined = yaml.safe_load(text)["rsvo_node"]["ros__parameters"]["line_delay"]
+    assert "refined" in text.splitlines()[0] and refined != first
+    assert abs(refined - 5e-5) < 0.2 * 5e-5
     # too short to see anything: a clear failure, no file
     short = tmp_path / "short"
     write_bag(short, SynthConfig(frames=12, motion="walk", seed=3), progress=False)
