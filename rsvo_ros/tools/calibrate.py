@@ -114,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"rsvo_calibrate: refined in a second pass: line delay "
                   f"{e['line_delay_s'] * 1e6:.2f} +- {e['std_s'] * 1e6:.2f} us/row, readout "
                   f"{e['readout_s'] * 1e3:.2f} ms ({e['readout_fraction']:.3f} frame intervals; "
-                  f"first {first['line_delay_s'] * 1e6:.2f} us/row; {refined['reason']})")
+                  f"first {first['line_delay_s'] * 1e6:.2f} us/row; {refined['blocks']} blocks of "
+                  f"{refined['frames']} tracked frames)")
         else:
             print(f"rsvo_calibrate: kept the first estimate: the second pass could not refine "
                   f"it ({refined['reason']})")
