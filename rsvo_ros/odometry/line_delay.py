@@ -323,6 +323,14 @@ def parabola_min(x: np.ndarray, y: np.ndarray) -> float | None:
 MIN_SHEAR_FRAMES = 10
 
 
+def _world_rates(R: np.ndarray, w: np.ndarray, dt_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frames' rates in the world (N, 3) and the turn rates between consecutive poses
+    (N - 1, 3), over the intervals ``dt_s`` (N - 1,)."""
+    U = np.einsum("nij,nj->ni", R, w)
+    turns = so3_log(np.einsum("nji,njk->nik", R[:-1], R[1:]))
+    return U, np.einsum("nij,nj->ni", R[:-1], turns) / dt_s[:, None]
+
+
 def map_rate_shear(stamps_ns: np.ndarray, R: np.ndarray, w: np.ndarray) -> np.ndarray | None:
     """(3,) world-frame turn rate the tracked frames (stamps (N,) ns, ``R`` (N, 3, 3) world <-
     camera, ``w`` (N, 3) camera-frame rates) have beyond the turns between their poses; None
@@ -333,9 +341,7 @@ def map_rate_shear(stamps_ns: np.ndarray, R: np.ndarray, w: np.ndarray) -> np.nd
     dt = np.diff(stamps_ns) * 1e-9
     if not (dt > 0).all() or dt.max() > 1.6 * np.median(dt):
         return None
-    U = np.einsum("nij,nj->ni", R, w)
-    turns = so3_log(np.einsum("nji,njk->nik", R[:-1], R[1:]))
-    D = np.einsum("nij,nj->ni", R[:-1], turns) / dt[:, None]
+    U, D = _world_rates(R, w, dt)
     shear = 0.5 * (U[:-1].mean(axis=0) + U[1:].mean(axis=0)) - D.mean(axis=0)
     return shear if np.isfinite(shear).all() else None
 
@@ -385,9 +391,8 @@ def refine_line_delay(stamps_ns: np.ndarray, R: np.ndarray, w: np.ndarray,
         return out
     dt_ns = np.diff(stamps_ns)
     interval = float(np.median(dt_ns))
-    U = np.einsum("nij,nj->ni", R, w) * line_delays[:, None]
-    turns = so3_log(np.einsum("nji,njk->nik", R[:-1], R[1:]))
-    D = np.einsum("nij,nj->ni", R[:-1], turns) / (dt_ns[:, None] * 1e-9)
+    U, D = _world_rates(R, w, dt_ns * 1e-9)
+    U = U * line_delays[:, None]
     gap = (dt_ns <= 0) | (dt_ns > 1.5 * interval)
     SU, SD = [], []
     for a in range(1, n - o.block - 1, o.block):

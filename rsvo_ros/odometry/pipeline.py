@@ -239,14 +239,10 @@ class OdometryPipeline:
         if changed:
             self.reset()  # the backends hold the camera: a new camera starts a new trajectory
 
-    @property
-    def _refining(self) -> bool:
-        return self.options.line_delay_refine
-
     def refined_line_delay(self) -> RefinedLineDelay:
         """line_delay_refine: the line delay from the frames tracked so far
         (:func:`~rsvo_ros.odometry.line_delay.refine_line_delay`)."""
-        if not self._refining:
+        if not self.options.line_delay_refine:
             return RefinedLineDelay("off", reason="line_delay_refine is off")
         log = list(self.refine_log)
         if not log:
@@ -280,7 +276,7 @@ class OdometryPipeline:
                                    o.lm, o.initial_scale, o.motion_prior, o.max_scale_change,
                                    o.seed, o.rotation_only_parallax_px, uncertain)  # fmt: skip
         window_options = o.window
-        if self._refining:
+        if self.options.line_delay_refine:
             window_options = dataclasses.replace(o.window, shear_from_turns=True)
         self.window = WindowOdometry(self.K, tau, window_options, o.model, o.ransac, o.lm,
                                      o.initial_scale, o.motion_prior, o.seed)  # fmt: skip
@@ -569,7 +565,7 @@ class OdometryPipeline:
         hint = self.chain.T_world_cam.copy() if bootstrap else None
         out = self.window.track(stamp_ns, obs, hint)
         state: FrameState | None = out.state
-        if self._refining and out.status == "posed" and state is not None:
+        if self.options.line_delay_refine and out.status == "posed" and state is not None:
             self.refine_log.append((stamp_ns, state.R.copy(), state.w.copy(), self.line_delay))
         if out.status != "posed" and step is not None and step.status == "posed":
             self.T_world_cam, self.covariance = self.chain.T_world_cam, self.chain.covariance
