@@ -85,20 +85,23 @@ def main(argv: list[str] | None = None) -> int:
             summary = run(Path(tmp) / "replay",
                           PipelineOptions(line_delay_auto=True, readout=args.readout_direction,
                                           line_delay_rerun_max_frames=0))  # fmt: skip
-            e = summary["line_delay_auto"]
-            refined = None
-            if not args.no_refine and e["line_delay_s"]:  # 0: a global shutter, kept
-                second = run(Path(tmp) / "refine",
-                             PipelineOptions(line_delay_refine=True,
-                                             readout=args.readout_direction),
-                             line_delay=float(e["line_delay_s"]))  # fmt: skip
-                refined = second["line_delay_refined"]
         except ReplayError as exc:
             print(f"rsvo_calibrate: {exc}", file=sys.stderr)
             return EXIT_FAILED
         except ValueError as exc:
             print(f"rsvo_calibrate: {exc}", file=sys.stderr)
             return EXIT_USAGE
+        e = summary["line_delay_auto"]
+        refined = None
+        if not args.no_refine and e["line_delay_s"]:  # 0: a global shutter, kept
+            try:
+                second = run(Path(tmp) / "refine",
+                             PipelineOptions(line_delay_refine=True,
+                                             readout=args.readout_direction),
+                             line_delay=float(e["line_delay_s"]))  # fmt: skip
+                refined = second["line_delay_refined"]
+            except (ReplayError, ValueError) as exc:  # the first estimate is not lost
+                refined = {"status": "failed", "reason": f"the second pass failed: {exc}"}
     if e["line_delay_s"] is None:
         print(f"rsvo_calibrate: no estimate: {e['status']} ({e['reason']}); the camera must "
               "move and rotate during the bag", file=sys.stderr)

@@ -967,3 +967,31 @@ def test_brightness_changes_are_compensated_and_counted(tmp_path, capsys):
     summary = {n: json.loads((tmp_path / n / "summary.json").read_text()) for n in runs}
     assert summary["on"]["photometric_compensation"] is True
     assert summary["off"]["photometric_compensation"] is False
+
+
+def test_rsvo_calibrate_keeps_the_first_estimate_when_the_second_pass_fails(tmp_path, capsys,
+                                                                           monkeypatch):
+    import yaml
+
+    from rsvo_ros.tools import calibrate
+    from rsvo_ros.tools.replay import ReplayError
+
+    first = {"status": "estimated", "line_delay_s": 4.2e-5, "std_s": 1e-6, "readout_s": 0.0151,
+             "readout_fraction": 0.45, "std_fraction": 0.01, "windows": 9, "frames": 120,
+             "reason": "", "bag_line_delay_s": None}
+    calls = []
+
+    def fake_replay(cfg):
+        calls.append(cfg.options.line_delay_refine)
+        if cfg.options.line_delay_refine:
+            raise ReplayError("the bag's image topic has no messages")
+        return {"line_delay_auto": dict(first), "frames_in": 120}
+
+    monkeypatch.setattr(calibrate, "replay", fake_replay)
+    out = tmp_path / "calib.yaml"
+    assert calibrate.main([str(tmp_path / "bag"), "--output", str(out), "--no-progress"]) == 0
+    assert calls == [False, True]
+    printed = capsys.readouterr().out
+    assert "kept the first estimate" in printed and "the second pass failed" in printed
+    params = yaml.safe_load(out.read_text())["rsvo_node"]["ros__parameters"]
+    assert params["line_delay"] == 4.2e-5
