@@ -41,6 +41,7 @@ from rsvo_ros.odometry.pairwise import (
     UNCERTAIN_PAIR_ROTATION_DEG,
     PairwiseChain,
 )
+from rsvo_ros.odometry.refine_worker import RefineJob
 from rsvo_ros.odometry.relocalize import describe
 from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.odometry.twist import Twist, TwistEstimator
@@ -57,6 +58,8 @@ BACKENDS = ("window", "pairwise")
 # and the replay reset the pipeline and start a new trajectory, instead of skipping every
 # frame after a fault that the pipeline's state carries on (the first traceback is logged)
 FAULT_RESET_AFTER = 3
+# close(): how long a line-delay refinement still running is waited for
+REFINE_WAIT_S = 300.0
 
 
 @dataclass
@@ -127,6 +130,18 @@ class PipelineOptions:
     # rsvo_calibrate's second pass). RS model, window backend, not with line_delay_auto
     line_delay_refine: bool = False
     line_delay_refinement: RefineOptions = field(default_factory=RefineOptions)
+    # line_delay auto: once the trajectory has this many frames (kept as images) and an
+    # estimate, a second pipeline runs them again at that estimate with line_delay_refine and
+    # its refined value replaces the estimate (status "refined"; the calibrator stops). With
+    # async mapping (the node) in a process of its own at the lowest CPU priority
+    # (refine_worker.py), taken at a later frame; else inline, in that frame (the replay).
+    # Without a non-zero estimate by twice this many frames: not refined. 0: the estimate is
+    # the calibrator's (README, "The pipeline refines its own estimate after 150 frames")
+    line_delay_auto_refine_frames: int = 150
+    # ... only for frames that come at least this fast (their median interval): at 10-15 Hz
+    # neither the first estimate nor its refinement was usable (README, "Refining the
+    # estimate": the live node at 15 Hz went from -36 % to +133 %)
+    line_delay_auto_refine_min_rate_hz: float = 25.0
     # which way the rolling shutter reads the images as they arrive (core/readout.py): "down"
     # (rows top to bottom, CONTRACTS.md), "up" (an image turned by 180 degrees: a camera
     # mounted upside down), "right" / "left" (columns: an image turned by 90 degrees, a phone
@@ -193,6 +208,9 @@ class OdometryPipeline:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.options.backend!r}")
         check_readout(self.options.readout)
         o = self.options
+        if o.line_delay_auto_refine_frames < 0:
+            raise ValueError(f"line_delay_auto_refine_frames must be >= 0 (0: off), got "
+                             f"{o.line_delay_auto_refine_frames}")
         if o.line_delay_refine and (o.line_delay_auto or o.model != "rs" or o.backend != "window"):
             raise ValueError("line_delay_refine refines a given line delay: it needs the RS "
                              "model, the window backend and line_delay_auto off")
@@ -216,6 +234,8 @@ class OdometryPipeline:
             raise ValueError(f"line_delay must be finite and >= 0, got {line_delay}")
         D = as_lens(D)
         changed = hasattr(self, "window") and not self._same_camera(K, D, float(line_delay))
+        if changed and self._refine_job is not None:  # a refinement for the old camera
+            self._refine_job[0].cancel()
         self.K, self.D, self.given_line_delay = K, D, float(line_delay)
         if changed or not hasattr(self, "window"):
             # the line delay the pipeline runs with: the given one, or line_delay auto's
@@ -229,6 +249,12 @@ class OdometryPipeline:
             self.refine_log: list[tuple[int, np.ndarray, np.ndarray, float]] = []
             self._calibration_thread: threading.Thread | None = None
             self._calibration_result: LineDelayEstimate | None = None
+            # line_delay_auto_refine_frames: the trajectory's frames for the refinement (None:
+            # not kept), the refinement running in the background, and what it gave (summary)
+            self._refine_frames: list[tuple[int, np.ndarray]] | None = None
+            # (RefineJob, first estimate, start time) while it runs
+            self._refine_job: tuple | None = None
+            self.line_delay_auto_refinement: dict | None = None
             if self.options.line_delay_auto and self.options.model == "rs":
                 self.line_delay_estimate = LineDelayEstimate(
                     "collecting", reason="no keyframe windows yet")
@@ -236,6 +262,9 @@ class OdometryPipeline:
                     centre = K[0, 2] if self.options.readout in ("right", "left") else K[1, 2]
                     self.line_delay = self.options.auto_initial_readout / 30.0 \
                         / max(2.0 * float(centre), 1.0)
+                if self.options.line_delay_auto_refine_frames > 0 \
+                        and self.options.backend == "window":
+                    self._refine_frames = []
         if changed:
             self.reset()  # the backends hold the camera: a new camera starts a new trajectory
 
@@ -304,6 +333,8 @@ class OdometryPipeline:
         """One new frame (uint8 gray). Never raises for bad data: returns a skipped result."""
         self._revised = None
         res = self._process(stamp_ns, gray)
+        if not self._rerunning:
+            self._refine_step(stamp_ns)
         if res.status != "skipped":  # a skipped frame leaves the trajectory as it was
             continuous = (res.status == "posed" and res.tracking == "tracking"
                           and not res.refound and not res.time_reset)  # fmt: skip
@@ -331,6 +362,8 @@ class OdometryPipeline:
         jump = self._time_jump(stamp_ns)
         if jump == "reset":
             back = (self._last_stamp - stamp_ns) * 1e-9
+            if self._refine_frames is not None:  # the new trajectory's frames only
+                self._refine_frames = []
             self.reset()  # as a new pipeline: frame indices (and RANSAC seeds) start over
             res = self._process(stamp_ns, gray)
             res.time_reset = True
@@ -347,11 +380,15 @@ class OdometryPipeline:
         self._calibrate(stamp_ns, sensor_line_count(self.options.readout, width, height))
         if self._rerun_due:
             self._revised = self._rerun(idx)
+        kept = None  # one copy of the image for the re-runs and the refinement
         if self._rerun_frames is not None and not self._rerunning:
             if len(self._rerun_frames) < self.options.line_delay_rerun_max_frames:
-                self._rerun_frames.append((stamp_ns, gray.copy()))
+                kept = gray.copy()
+                self._rerun_frames.append((stamp_ns, kept))
             else:  # too long without an estimate: go on with what the frames built
                 self._rerun_frames = None
+        if self._refine_frames is not None and not self._rerunning:
+            self._refine_frames.append((stamp_ns, gray.copy() if kept is None else kept))
         pair = self.tracker.track(gray, stamp_ns)
         tracked = True
         if self.options.readout != "down":
@@ -391,7 +428,7 @@ class OdometryPipeline:
             self.calibrator = LineDelayCalibrator(height, o.line_delay_calibration)
             self.window.calibrator = self.calibrator
         cal = self.calibrator
-        if self.line_delay_estimate.status == "converged":
+        if self.line_delay_estimate.status in ("converged", "refined"):
             return
         cal.add_frame()
         done, self._calibration_result = self._calibration_result, None
@@ -416,7 +453,7 @@ class OdometryPipeline:
     def _take_estimate(self, est: LineDelayEstimate, stamp_ns: int) -> None:
         self.line_delay_estimate = est
         self.line_delay_history.append({"stamp_ns": int(stamp_ns), **est.as_dict()})
-        if est.status in ("estimated", "converged") and est.line_delay_s is not None:
+        if est.status in ("estimated", "converged", "refined") and est.line_delay_s is not None:
             self._set_line_delay(float(est.line_delay_s))
             if self._rerun_frames is not None:
                 # an estimate away from what the frames so far ran with: they run again with it;
@@ -432,6 +469,59 @@ class OdometryPipeline:
             # nothing measured yet: back to the given value (0: a global shutter) while it
             # goes on collecting
             self._set_line_delay(self.given_line_delay)
+
+    def _refine_step(self, stamp_ns: int) -> None:
+        """line_delay_auto_refine_frames: take a finished refinement; start one when the
+        trajectory has its frames and an estimate (or give up without an estimate)."""
+        job = self._refine_job
+        if job is not None and job[0].done():
+            self._refine_job = None
+            self._take_refined(job[0].result(), job[1], job[2], stamp_ns)
+        frames, n = self._refine_frames, self.options.line_delay_auto_refine_frames
+        if frames is None or len(frames) < n:
+            return
+        e = self.line_delay_estimate
+        if e.status not in ("estimated", "converged") or not e.line_delay_s:
+            if len(frames) >= 2 * n:
+                self._refine_frames = None
+                self.line_delay_auto_refinement = {
+                    "status": "not refined", "frames": len(frames), "line_delay_s": None,
+                    "reason": f"no non-zero estimate after {len(frames)} frames ({e.status})"}
+            return
+        self._refine_frames = None  # once per camera
+        rate = 1e9 / max(float(np.median(np.diff([st for st, _ in frames]))), 1.0)
+        if rate < self.options.line_delay_auto_refine_min_rate_hz:
+            self.line_delay_auto_refinement = {
+                "status": "not refined", "frames": len(frames), "line_delay_s": None,
+                "reason": f"the frames came at {rate:.1f} Hz, under the "
+                          f"{self.options.line_delay_auto_refine_min_rate_hz:g} Hz the "
+                          f"refinement needs"}  # fmt: skip
+            return
+        first, t0 = float(e.line_delay_s), time.perf_counter()
+        args = (self.K, self.D, first, self.options, frames)
+        if self.options.window.async_mapping:
+            # the node: in a process of its own at the lowest CPU priority (refine_worker.py)
+            self._refine_job = (RefineJob(args), first, t0)
+        else:
+            self._take_refined(refine_pass(*args), first, t0, stamp_ns)
+
+    def _take_refined(self, ref: RefinedLineDelay, first: float, t0: float,
+                      stamp_ns: int) -> None:  # fmt: skip
+        """A finished refinement: a refined line delay replaces the estimate (as a new
+        estimate: the kept frames may run again with it); otherwise the estimate stays."""
+        self.line_delay_auto_refinement = {
+            **ref.as_dict(), "first_line_delay_s": first,
+            "time_ms": (time.perf_counter() - t0) * 1e3, "stamp_ns": int(stamp_ns)}
+        if ref.status != "refined" or not ref.line_delay_s or not np.isfinite(ref.line_delay_s):
+            return
+        e, f = self.line_delay_estimate, ref.line_delay_s / first
+        scaled = (lambda x: None if x is None else x * f)  # noqa: E731
+        self._take_estimate(LineDelayEstimate(
+            "refined", ref.line_delay_s, ref.std_s, scaled(e.readout_fraction),
+            None if e.readout_fraction is None else e.readout_fraction * ref.std_s / first,
+            scaled(e.readout_s), e.windows, ref.frames,
+            f"refined in a second pass over {ref.frames} tracked frames ({ref.blocks} blocks) "
+            f"from {first * 1e6:.2f} us/row", e.curve), stamp_ns)
 
     def _set_line_delay(self, line_delay: float) -> None:
         if line_delay != self.line_delay:
@@ -479,11 +569,17 @@ class OdometryPipeline:
                                        "line_delay_s": self.line_delay})  # fmt: skip
         return results
 
-    def close(self) -> None:
-        """Stop the background threads (async mapping, line-delay estimation)."""
+    def close(self, refine_wait_s: float = REFINE_WAIT_S) -> None:
+        """Stop the background threads (async mapping, line-delay estimation); a line-delay
+        refinement still running is waited for up to ``refine_wait_s`` and taken, or stopped
+        (status "failed": it did not finish; the node waits briefly, a replay to the end)."""
         self.window.close()
         if self._calibration_thread is not None:
             self._calibration_thread.join(timeout=60.0)
+        job, self._refine_job = self._refine_job, None
+        if job is not None:  # running after the last frame
+            job[0].wait(refine_wait_s)
+            self._take_refined(job[0].result(), job[1], job[2], self._last_stamp or 0)
 
     @property
     def frame_interval_ns(self) -> float | None:
@@ -624,6 +720,26 @@ class OdometryPipeline:
                       keyframe=out.keyframe, velocity=velocity,
                       mapping_ms=out.ba.time_ms if out.ba is not None else 0.0,
                       refound=out.refound)  # fmt: skip
+
+
+def refine_pass(K: np.ndarray, D: LensModel | None, line_delay: float,
+                options: PipelineOptions,
+                frames: list[tuple[int, np.ndarray]]) -> RefinedLineDelay:  # fmt: skip
+    """``frames`` processed by a new pipeline at ``line_delay`` with the map's shear removed
+    (``line_delay_refine``; the options otherwise those of the pipeline that kept them), and
+    its refined line delay (rsvo_calibrate's second pass). Never raises: a failure is
+    reported as status "failed"."""
+    options = replace(options, line_delay_auto=False, line_delay_refine=True,
+                      line_delay_rerun_max_frames=0, line_delay_auto_refine_frames=0,
+                      window=replace(options.window, async_mapping=False))  # fmt: skip
+    try:
+        second = OdometryPipeline(K, D, line_delay, options)
+        for stamp, gray in frames:
+            second.process(stamp, gray)
+        second.close()
+        return second.refined_line_delay()
+    except Exception as exc:  # noqa: BLE001 - the estimate it refines is kept
+        return RefinedLineDelay("failed", reason=f"the second pass failed: {exc!r}")
 
 
 def warm_up() -> float:

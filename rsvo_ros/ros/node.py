@@ -84,6 +84,8 @@ LARGE_IMAGE_HINT_MS = (8.0, 1000.0)
 # what tf2_ros's broadcasters use: /tf keeps 100, /tf_static is latched for late subscribers
 # relative: in the node's namespace, as the topics (/rsvo/reset in the root namespace)
 RESET_SERVICE = "rsvo/reset"
+# shutdown: how long a line-delay refinement still running may take to finish (then stopped)
+NODE_REFINE_WAIT_S = 2.0
 TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -134,6 +136,7 @@ class RsvoNode(Node):
         self._publish_ms: deque = deque(maxlen=100)  # messages filled and published
         self._last_inlier_ratio = 0.0
         self._line_delay_saved: tuple | None = None  # (status, value) last written
+        self._refinement_logged: dict | None = None  # the line-delay refinement last logged
         self._state = "waiting for camera info"
         self._tracking = "initialising"
         self._path: deque = deque(maxlen=int(self.p["path_max_length"]))
@@ -336,6 +339,7 @@ class RsvoNode(Node):
         # the camera sends meanwhile are dropped
         if not self.p["line_delay_rerun"]:
             opts.line_delay_rerun_max_frames = 0
+        opts.line_delay_auto_refine_frames = int(self.p["line_delay_refine_frames"])
         self.pipeline = OdometryPipeline(K, D, float(self.p["line_delay"]), opts)
 
     def _bad(self, kind: str) -> None:
@@ -403,6 +407,7 @@ class RsvoNode(Node):
             res = self.pipeline.process(stamp_ns(msg.header), gray)
         self._proc_ms.append((time.perf_counter() - t0) * 1e3)
         self._save_line_delay()
+        self._log_refinement()
         self._track_ms.append(res.time_ms - res.mapping_ms)
         if res.mapping_ms > 0:
             self._map_ms.append(res.mapping_ms)
@@ -627,15 +632,40 @@ class RsvoNode(Node):
             out["line_delay_reason"] = e.reason
         if pipeline.calibrator is not None:
             out["line_delay_windows"] = str(len(pipeline.calibrator.windows))
+        ref = pipeline.line_delay_auto_refinement
+        if ref is not None:  # line_delay_refine_frames: the second pass's outcome
+            out["line_delay_refinement"] = ref["status"]
+            if ref.get("first_line_delay_s") is not None:
+                out["line_delay_first_estimate"] = f"{ref['first_line_delay_s']:.6g}"
+            if ref["status"] != "refined":
+                out["line_delay_refinement_reason"] = ref["reason"]
         return out
 
+    def _log_refinement(self) -> None:
+        """line_delay_refine_frames: one log line when the second pass is done."""
+        ref = self.pipeline.line_delay_auto_refinement if self.pipeline is not None else None
+        if ref is None or ref is self._refinement_logged:
+            return
+        self._refinement_logged = ref
+        if ref["status"] == "refined":
+            self.get_logger().info(
+                f"line delay auto: refined to {ref['line_delay_s'] * 1e6:.2f} +- "
+                f"{ref['std_s'] * 1e6:.2f} us/row from {ref['first_line_delay_s'] * 1e6:.2f} in a "
+                f"second pass over {ref['frames']} tracked frames "
+                f"({ref['time_ms'] / 1e3:.1f} s in a background process)")
+        else:
+            self.get_logger().warning(f"line delay auto: the estimate is kept, not refined: "
+                                      f"{ref['reason']}")
+
     def _save_line_delay(self, final: bool = False) -> None:
-        """``line_delay_save_file``: a converged estimate (or, at shutdown, the last one) as a
-        parameter file the next start loads, written once per value (atomically)."""
+        """``line_delay_save_file``: a converged or refined estimate (or, at shutdown, the
+        last one) as a parameter file the next start loads, written once per value
+        (atomically)."""
         path = self.p["line_delay_save_file"]
         e = self.pipeline.line_delay_estimate if self.pipeline is not None else None
         if not path or e is None or e.line_delay_s is None \
-                or e.status not in (("estimated", "converged") if final else ("converged",)):
+                or e.status not in (("estimated", "converged", "refined") if final
+                                    else ("converged", "refined")):
             return
         if self._line_delay_saved == (e.status, e.line_delay_s):
             return
@@ -660,7 +690,10 @@ class RsvoNode(Node):
         self._wake.set()
         self._worker.join(timeout=5.0)
         if self.pipeline is not None:
-            self.pipeline.close()
+            # a line-delay refinement still running: a moment to finish, else stopped (a
+            # shutdown must not wait for it; the estimate then saved is the unrefined one)
+            self.pipeline.close(refine_wait_s=NODE_REFINE_WAIT_S)
+            self._log_refinement()
             self._save_line_delay(final=True)
         self._trajectory.close()
         return super().destroy_node()

@@ -107,10 +107,18 @@ PARAMETERS = {
         "which the camera's frames are dropped (the newest is kept), so false (default) for a "
         "live camera; rsvo_replay does it unless --no-line-delay-rerun (the frames before the "
         "first estimate otherwise keep the map and scale the starting readout gave them).")),
+    "line_delay_refine_frames": (150, _int(
+        "line_delay_mode auto: after this many frames, run them again at the estimate in the "
+        "background with the map's shear removed and take the refined line delay "
+        "(status refined; as rsvo_calibrate's second pass, over these frames; they are kept as "
+        "images until then, 138 MB at 1280x720; in a process of its own at the lowest CPU "
+        "priority; only for frames at 25 Hz or faster). 0: keep the calibrator's estimate.",
+        0, 100000)),
     "line_delay_save_file": ("", _str(
         "line_delay_mode auto: write the estimate to this ROS 2 parameter file when it "
-        "converges and at shutdown (line_delay: the estimate, line_delay_mode: auto), so that "
-        "the next start with --params-file FILE begins from it instead of the nominal "
+        "converges or is refined and at shutdown (line_delay: the estimate, line_delay_mode: "
+        "auto), so that the next start with --params-file FILE begins from it instead of the "
+        "nominal "
         "half-frame readout; '' (default): not written.")),
     "trajectory_file": ("", _str(
         "Write every published odometry pose to this file as TUM lines (stamp x y z qx qy qz "

@@ -80,11 +80,13 @@ def main(argv: list[str] | None = None) -> int:
 
     with tempfile.TemporaryDirectory(prefix="rsvo_calibrate_") as tmp:
         try:
-            # the estimate as the node makes it: the re-runs of the first frames mend the
-            # replay's trajectory, not the estimate (README)
+            # the calibrator's estimate: the re-runs of the first frames mend the replay's
+            # trajectory, not the estimate (README); the second pass below refines it over
+            # the whole bag instead of the first 150 frames
             summary = run(Path(tmp) / "replay",
                           PipelineOptions(line_delay_auto=True, readout=args.readout_direction,
-                                          line_delay_rerun_max_frames=0))  # fmt: skip
+                                          line_delay_rerun_max_frames=0,
+                                          line_delay_auto_refine_frames=0))  # fmt: skip
         except ReplayError as exc:
             print(f"rsvo_calibrate: {exc}", file=sys.stderr)
             return EXIT_FAILED

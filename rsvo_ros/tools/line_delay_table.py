@@ -6,10 +6,13 @@ For each case a bag is written (``rsvo_synth``) and replayed: with ``--line-dela
 --two-pass`` (the first pass as the live node runs, and the offline second pass with its
 estimate), with ``--line-delay auto`` in one pass (its frames before the first estimate are
 processed again with it, and with later estimates away from it), with the true line delay and
-with 0 (a global-shutter model of an RS camera). The "estimate" is the node's (and
-``rsvo_calibrate``'s, and the one the second pass takes); the one-pass replay's, with the
-re-runs, is beside it, and ``rsvo_calibrate``'s: the node's estimate refined in a second pass
-(``PipelineOptions.line_delay_refine``).
+with 0 (a global-shutter model of an RS camera). The "estimate" is the pipeline's after
+the bag's 150 frames, as the node makes it (no re-runs; refined after 150 frames,
+``PipelineOptions.line_delay_auto_refine_frames``; the one the second pass takes); beside it
+the calibrator's own estimate before that refinement (the node's until the twenty-fifth
+session), the one-pass replay's (with the re-runs, refined too), and ``rsvo_calibrate``'s:
+the calibrator's estimate refined in a second pass over the whole bag
+(``PipelineOptions.line_delay_refine``; the same frames here).
 Columns: the true and the estimated line delay (with the bootstrap uncertainty), the relative
 error, and the ATE of each replay. Seeds 0, 100 and 101 (walks) and 0 (vehicle, handheld) were
 looked at while the method was chosen; the 200-series were held out until the spline velocities
@@ -95,11 +98,22 @@ def run_case(out: Path, motion: str, severity: float, seed: int, line_delay: flo
     row["ate_two_pass_m"] = s["accuracy"]["ate_m"]["rmse"]
     row["estimate"] = kept(s)
     row["line_delay_used_s"] = s["two_pass"]["first_pass_line_delay_s"]
-    row["history"] = [[h["frames"], h["line_delay_s"]]
-                      for h in s["line_delay_auto"].get("history", [])]
-    # rsvo_calibrate's: that estimate refined in a second pass (a zero one kept)
-    first = row["estimate"]["line_delay_s"]
-    row["estimate_refined"] = {"line_delay_s": first, "std_s": row["estimate"]["std_s"],
+    history = s["line_delay_auto"].get("history", [])
+    row["history"] = [[h["frames"], h["line_delay_s"]] for h in history]
+    # the calibrator's own estimate, before the pipeline refined it after 150 frames
+    # (PipelineOptions.line_delay_auto_refine_frames; the node's and the table's estimate
+    # before the twenty-fifth session)
+    calibrator = [h for h in history if h["status"] != "refined" and h["line_delay_s"]
+                  is not None]  # fmt: skip
+    row["estimate_calibrator"] = ({k: calibrator[-1][k] for k in ("line_delay_s", "std_s",
+                                                                  "status", "reason")}
+                                  if calibrator else dict(row["estimate"]))  # fmt: skip
+    row["refinement"] = s["line_delay_auto"].get("refinement")
+    # rsvo_calibrate's: the calibrator's estimate refined in a second pass over the whole bag
+    # (a zero one kept)
+    first = row["estimate_calibrator"]["line_delay_s"]
+    row["estimate_refined"] = {"line_delay_s": first,
+                               "std_s": row["estimate_calibrator"]["std_s"],
                                "status": "first kept",
                                "reason": "no estimate" if first is None
                                else "a zero line delay (a global shutter) is kept"}
@@ -139,8 +153,10 @@ def summary(rows: list[dict]) -> str:
         reran = sum(within(r, "estimate_rerun") for r in rs)
         refined = sum(within(r, "estimate_refined") for r in rs)
         zero_refined = sum(within(r, "estimate_refined") for r in gs)
+        first = sum(within(r, "estimate_calibrator") for r in rs)
         out.append(f"- {group}: line delay within 10 % on {sum(within(r) for r in rs)} of "
-                   f"{len(rs)} rolling-shutter bags (with the re-runs: {reran}; rsvo_calibrate's, "
+                   f"{len(rs)} rolling-shutter bags (the calibrator's before the refinement: "
+                   f"{first}; with the re-runs: {reran}; rsvo_calibrate's, "
                    f"refined in a second pass: {refined}; global shutter {zero_refined} of "
                    f"{len(gs)}), ATE auto "
                    f"within 10 % of ATE true on {near('ate_auto_m', rs)} of {len(rs)} (as the "
@@ -195,9 +211,9 @@ def plot(path: Path, rows: list[dict]) -> None:
 
 def table(rows: list[dict]) -> str:
     lines = ["| case | group | true (us/row) | estimate (us/row) | error | status | "
-             "with the re-runs | rsvo_calibrate (refined) | ATE auto | ATE true | "
+             "calibrator | with the re-runs | rsvo_calibrate (refined) | ATE auto | ATE true | "
              "ATE auto / true | as the node / true | ATE two passes / true | ATE with 0 |",
-             "|---" * 14 + "|"]
+             "|---" * 15 + "|"]
     for r in rows:
         e, true = r["estimate"], r["line_delay_true_s"]
         if e["line_delay_s"] is None:
@@ -210,12 +226,10 @@ def table(rows: list[dict]) -> str:
         if rerun is not None:
             rerun = (f"{rerun * 1e6:.1f} ({100 * (rerun - true) / true:+.0f} %)" if true > 0
                      else f"{rerun * 1e6:.1f}")
-        refined = r["estimate_refined"]["line_delay_s"]
-        if refined is not None:
-            refined = (f"{refined * 1e6:.1f} ({100 * (refined - true) / true:+.0f} %)"
-                       if true > 0 else f"{refined * 1e6:.1f}")
+        refined = _with_error(r["estimate_refined"]["line_delay_s"], true)
+        first = _with_error(r.get("estimate_calibrator", e)["line_delay_s"], true)
         lines.append(f"| {r['case']} | {r['group']} | {true * 1e6:.0f} | {est} | {err} | "
-                     f"{e['status']} | {rerun or '-'} | {refined or '-'} | "
+                     f"{e['status']} | {first or '-'} | {rerun or '-'} | {refined or '-'} | "
                      f"{r['ate_auto_m']:.3f} m | "
                      f"{r['ate_true_m']:.3f} m | "
                      f"{r['ate_auto_m'] / max(r['ate_true_m'], 1e-9):.2f} | "
@@ -223,6 +237,13 @@ def table(rows: list[dict]) -> str:
                      f"{r['ate_two_pass_m'] / max(r['ate_true_m'], 1e-9):.2f} | "
                      f"{r['ate_zero_m']:.3f} m |")
     return "\n".join(lines)
+
+
+def _with_error(value: float | None, true: float) -> str | None:
+    if value is None:
+        return None
+    return (f"{value * 1e6:.1f} ({100 * (value - true) / true:+.0f} %)" if true > 0
+            else f"{value * 1e6:.1f}")
 
 
 def _run_case(job: tuple) -> dict:

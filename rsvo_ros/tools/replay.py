@@ -549,6 +549,9 @@ def replay(cfg: ReplayConfig) -> dict:
             # estimates away from it ([]: not done; PipelineOptions.line_delay_rerun_*)
             "reruns": pipeline.line_delay_reruns,
             "frames_revised": revised,
+            # the estimate refined in a second pass over the first frames
+            # (PipelineOptions.line_delay_auto_refine_frames; None: not started)
+            "refinement": pipeline.line_delay_auto_refinement,
         }
     if pipeline is not None and pipeline.options.line_delay_refine:
         # the given line delay refined from the frames' turn rates (rsvo_calibrate)
@@ -641,7 +644,8 @@ def replay_two_pass(cfg: ReplayConfig) -> dict:
                 "first_pass_wall_time_s": first["wall_time_s"],
                 "first_pass_ate_m": (first["accuracy"]["ate_m"]["rmse"]
                                      if "accuracy" in first else None)}
-    if estimate["status"] not in ("estimated", "converged") or estimate["line_delay_s"] is None:
+    if estimate["status"] not in ("estimated", "converged", "refined") \
+            or estimate["line_delay_s"] is None:
         for item in first_dir.iterdir():  # the first pass is the result
             target = cfg.output / item.name
             if target.is_dir():
@@ -1033,6 +1037,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "frames, again with a later estimate over 10 %% away, at most "
                         "line_delay_reruns times; trajectory.tum and the accuracy get their new "
                         "poses)")
+    p.add_argument("--line-delay-refine-frames", type=int, default=150, metavar="N",
+                   help="with --line-delay auto: after N frames, run them again at the "
+                        "estimate with the map's shear removed and take the refined line delay "
+                        "(as rsvo_calibrate's second pass, over the first N frames; a pause of "
+                        "a few seconds at that frame); 0: keep the calibrator's estimate "
+                        "(default 150)")
     p.add_argument("--max-features", type=int, default=500, help="tracked corners (500)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N",
                    help="stop after the first N images (default: the whole bag)")
@@ -1122,8 +1132,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_line_delay_rerun and not auto:
         print("rsvo_replay: --no-line-delay-rerun needs --line-delay auto", file=sys.stderr)
         return EXIT_USAGE
+    if args.line_delay_refine_frames != 150 and not auto:
+        print("rsvo_replay: --line-delay-refine-frames needs --line-delay auto", file=sys.stderr)
+        return EXIT_USAGE
+    if not 0 <= args.line_delay_refine_frames <= 100_000:
+        print("rsvo_replay: --line-delay-refine-frames must be in [0, 100000] (0: off)",
+              file=sys.stderr)
+        return EXIT_USAGE
+    if 0 < args.line_delay_refine_frames < 30:
+        print("rsvo_replay: --line-delay-refine-frames below 30 gives too few blocks of frames "
+              "to refine from; use 0 (off) or at least 30", file=sys.stderr)
+        return EXIT_USAGE
     options = PipelineOptions(motion_prior=not args.no_motion_prior, backend=args.backend,
-                              line_delay_auto=auto, readout=args.readout_direction)
+                              line_delay_auto=auto, readout=args.readout_direction,
+                              line_delay_auto_refine_frames=args.line_delay_refine_frames)
     if args.no_line_delay_rerun:
         options.line_delay_rerun_max_frames = 0
     options.window.async_mapping = args.async_mapping
@@ -1173,6 +1195,13 @@ def main(argv: list[str] | None = None) -> int:
         print("rsvo_replay: " + "; ".join(events))
     if "line_delay_auto" in s:
         print(f"rsvo_replay: line delay auto: {_describe_estimate(s['line_delay_auto'])}")
+        ref = s["line_delay_auto"].get("refinement")
+        if ref is not None and ref["status"] == "refined":
+            print(f"rsvo_replay: refined after {args.line_delay_refine_frames} frames from "
+                  f"{ref['first_line_delay_s'] * 1e6:.2f} us/row (a second pass over them, "
+                  f"{ref['time_ms'] / 1e3:.1f} s; --line-delay-refine-frames 0: without)")
+        elif ref is not None:
+            print(f"rsvo_replay: the estimate was not refined: {ref['reason']}")
     firsts = [h["frames"] for h in s.get("line_delay_auto", {}).get("history", [])
               if h["line_delay_s"] is not None]
     reruns = s.get("line_delay_auto", {}).get("reruns")

@@ -17,7 +17,8 @@ from rsvo_ros.odometry.line_delay import (
     LineDelayOptions,
     parabola_min,
 )
-from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
+from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions, refine_pass
+from rsvo_ros.odometry.refine_worker import RefineJob
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import accuracy
 
@@ -28,8 +29,10 @@ def _run(line_delay_true: float, auto: bool, seed: int = 0):
     cfg = SynthConfig(frames=FRAMES, motion="walk", severity=1.0, seed=seed,
                       line_delay=line_delay_true)
     renderer = SequenceRenderer(cfg)
+    # the calibrator's estimate (its refinement in a second pass: the tests below)
     pipe = OdometryPipeline(renderer.K, None, 0.0 if auto else line_delay_true,
-                            PipelineOptions(line_delay_auto=auto))
+                            PipelineOptions(line_delay_auto=auto,
+                                            line_delay_auto_refine_frames=0))
     est, gt = {}, {}
     for f in renderer:
         s = round(f.stamp * 1e9)
@@ -332,3 +335,136 @@ def test_refining_runs_the_window_without_the_map_shear():
     off = OdometryPipeline(renderer.K, None, 4e-5)
     assert not off.window.options.shear_from_turns
     assert off.refined_line_delay().status == "off"
+
+
+def _walk_frames(n: int, line_delay: float = 5e-5, seed: int = 0):
+    cfg = SynthConfig(frames=n, motion="walk", severity=1.0, seed=seed, line_delay=line_delay)
+    renderer = SequenceRenderer(cfg)
+    return renderer.K, [(round(f.stamp * 1e9), f.image) for f in renderer]
+
+
+def test_auto_refines_its_estimate_in_a_second_pass_over_the_first_frames():
+    """line_delay_auto_refine_frames: after that many frames the estimate is refined by a
+    second pipeline over them at that estimate (line_delay_refine): the same value as
+    rsvo_calibrate's second pass over those frames, used from then on, the calibrator stopped;
+    inline without async mapping, on a thread with it (taken at a later frame or at close)."""
+    K, frames = _walk_frames(104)
+    n = 100
+    pipe = OdometryPipeline(K, None, 0.0, PipelineOptions(
+        line_delay_auto=True, line_delay_rerun_max_frames=0, line_delay_auto_refine_frames=n))
+    for k, (stamp, image) in enumerate(frames):
+        before = pipe.line_delay_estimate
+        pipe.process(stamp, image)
+        if k == n - 2:
+            assert pipe.line_delay_auto_refinement is None
+            assert before.status == "estimated"
+        if k == n - 1:  # the n-th frame: refined before the next one
+            first = before.line_delay_s
+    windows = len(pipe.calibrator.windows)
+    pipe.close()
+    ref = pipe.line_delay_auto_refinement
+    e = pipe.line_delay_estimate
+    assert ref["status"] == "refined" and ref["first_line_delay_s"] == first, ref
+    assert e.status == "refined" and e.line_delay_s == ref["line_delay_s"] != first
+    assert pipe.line_delay == e.line_delay_s and pipe.window.line_delay == e.line_delay_s
+    assert pipe.line_delay_history[-1]["status"] == "refined"
+    assert e.readout_fraction > 0 and e.readout_s == pytest.approx(e.line_delay_s * 360)
+    # the refinement is rsvo_calibrate's second pass over those frames
+    second = OdometryPipeline(K, None, first, PipelineOptions(line_delay_refine=True))
+    for stamp, image in frames[:n]:
+        second.process(stamp, image)
+    second.close()
+    assert second.refined_line_delay().line_delay_s == ref["line_delay_s"]
+    assert abs(ref["line_delay_s"] - 5e-5) < 0.15 * 5e-5, ref
+    # the calibrator stopped: no window added after the refinement is used
+    assert len(pipe.calibrator.windows) == windows
+
+    # async mapping (the node): in a process of its own at the lowest priority, taken at a
+    # later frame or at close(); fed here with the frames and an estimate of 5e-5 (fed as fast
+    # as they come, its async windows are too few for an estimate within these frames)
+    options = PipelineOptions(line_delay_auto=True, line_delay_rerun_max_frames=0,
+                              line_delay_auto_refine_frames=60)
+    options.window.async_mapping = True
+    live = OdometryPipeline(K, None, 0.0, options)
+    live._refine_frames = list(frames[:59])
+    live._take_estimate(LineDelayEstimate("estimated", 5e-5, 1e-6, 0.54, 0.01, 0.018, 5, 59), 1)
+    live.process(*frames[59])
+    assert live._refine_job is not None and live.line_delay_auto_refinement is None
+    live.close()  # waits for it
+    ref = live.line_delay_auto_refinement
+    assert ref is not None and ref["status"] == "refined" and ref["time_ms"] > 0, ref
+    assert ref["first_line_delay_s"] == 5e-5 and ref["frames"] > 25
+    assert live.line_delay == ref["line_delay_s"] > 0
+    assert live.line_delay_estimate.status == "refined"
+    second = OdometryPipeline(K, None, 5e-5, PipelineOptions(line_delay_refine=True))
+    for stamp, image in frames[:60]:
+        second.process(stamp, image)
+    assert second.refined_line_delay().line_delay_s == ref["line_delay_s"]  # the same pass
+    second.close()
+
+
+def test_auto_refinement_without_an_estimate_says_so_and_keeps_the_value():
+    """No estimate by twice line_delay_auto_refine_frames (a walk's first comes after about
+    75 frames): not refined, with the reason, and nothing kept any longer; a failing second
+    pass keeps the estimate."""
+    K, frames = _walk_frames(62)
+    pipe = OdometryPipeline(K, None, 0.0, PipelineOptions(
+        line_delay_auto=True, line_delay_rerun_max_frames=0, line_delay_auto_refine_frames=30))
+    for stamp, image in frames:
+        pipe.process(stamp, image)
+    pipe.close()
+    ref = pipe.line_delay_auto_refinement
+    assert ref["status"] == "not refined" and "no non-zero estimate after 60 frames" \
+        in ref["reason"], ref
+    assert pipe._refine_frames is None
+    assert pipe.line_delay_estimate.status == "collecting"
+    # frames that come too slowly (here every second frame of the walk: 15 Hz) are not refined
+    slow = OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True,
+                                                          line_delay_auto_refine_frames=30))
+    slow._refine_frames = list(frames[:58:2])
+    slow._take_estimate(LineDelayEstimate("estimated", 5e-5, 1e-6, 0.54, 0.01, 0.018, 5, 29), 1)
+    slow.process(*frames[58])
+    ref = slow.line_delay_auto_refinement
+    assert ref["status"] == "not refined" and "came at 15.0 Hz, under the 25 Hz" in ref["reason"]
+    assert slow.line_delay == 5e-5 and slow.line_delay_estimate.status == "estimated"
+    slow.close()
+
+    bad = OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True))
+    bad._take_estimate(LineDelayEstimate("estimated", 5e-5, 1e-6, 0.54, 0.01, 0.018, 5, 80), 1)
+    out = refine_pass(K, None, 5e-5, bad.options, [(0, None)])  # not an image
+    assert out.status == "not observable" and "no frame was tracked" in out.reason
+    assert refine_pass(K, None, -1.0, bad.options, []).status == "failed"
+    bad._take_refined(out, 5e-5, 0.0, 2)
+    assert bad.line_delay == 5e-5 and bad.line_delay_estimate.status == "estimated"
+    assert bad.line_delay_auto_refinement["status"] == "not observable"
+    with pytest.raises(ValueError, match="line_delay_auto_refine_frames"):
+        OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True,
+                                                       line_delay_auto_refine_frames=-1))
+    bad.close()
+
+
+def test_a_refinement_process_that_fails_says_why():
+    """The node's refinement runs in a process of its own: one that exits with an error gives
+    status "failed" with the error's last line (the estimate is kept), and its files go."""
+    job = RefineJob(("not", "the arguments"))
+    job.wait(120.0)
+    assert job.done()
+    r = job.result()
+    assert r.status == "failed" and "exited with 1" in r.reason and "TypeError" in r.reason, r
+    assert not job._dir.exists()
+    # a pipeline closed before its refinement finished (the node's shutdown): stopped, said
+    K, frames = _walk_frames(31)
+    options = PipelineOptions(line_delay_auto=True, line_delay_auto_refine_frames=30)
+    options.window.async_mapping = True
+    live = OdometryPipeline(K, None, 0.0, options)
+    live._refine_frames = list(frames[:30])
+    live._take_estimate(LineDelayEstimate("estimated", 5e-5, 1e-6, 0.54, 0.01, 0.018, 5, 29), 1)
+    live.process(*frames[30])
+    job = live._refine_job[0]
+    job._starter.join(30.0)  # the frames written and the process started, not finished
+    live.close(refine_wait_s=0.0)
+    ref = live.line_delay_auto_refinement
+    assert ref["status"] == "failed" and "did not finish" in ref["reason"], ref
+    assert live.line_delay == 5e-5 and live.line_delay_estimate.status == "estimated"
+    assert job._proc is not None and job._proc.poll() is not None  # stopped
+    assert not job._dir.exists()

@@ -626,6 +626,49 @@ def test_line_delay_save_file_is_the_next_start(ros_context, tmp_path):
         h.close()
 
 
+def test_line_delay_refinement_is_reported_and_saved(ros_context, tmp_path):
+    """line_delay_refine_frames reaches the pipeline; a refined estimate is used, shown in the
+    diagnostics beside the first one, and written to line_delay_save_file at once; 0: off."""
+    import time
+
+    import yaml
+
+    from rsvo_ros.odometry.line_delay import LineDelayEstimate, RefinedLineDelay
+
+    saved = tmp_path / "line_delay.yaml"
+    h = Harness(ros_context, [Parameter("line_delay_mode", value="auto"),
+                              Parameter("line_delay_refine_frames", value=40),
+                              Parameter("line_delay_save_file", value=str(saved))])
+    try:
+        info, msgs = _frames(3)
+        h.feed(info, msgs[:2])
+        pipe = h.node.pipeline
+        assert pipe.options.line_delay_auto_refine_frames == 40
+        assert pipe._refine_frames is not None and len(pipe._refine_frames) == 2
+        pipe._take_estimate(LineDelayEstimate("estimated", 4.2e-5, 2e-6, 0.45, 0.02, 7.6e-3,
+                                              9, 60), 0)  # fmt: skip
+        pipe._take_refined(RefinedLineDelay("refined", 5e-5, 3e-6, 12, 60, "12 blocks"),
+                           4.2e-5, time.perf_counter(), 0)  # fmt: skip
+        h.feed(info, msgs[2:3])
+        diag = h.node._line_delay_diagnostics()
+        assert diag["line_delay_status"] == diag["line_delay_refinement"] == "refined"
+        assert diag["line_delay_first_estimate"] == "4.2e-05"
+        assert diag["line_delay_estimate"] == diag["line_delay_used"] == "5e-05"
+        params = yaml.safe_load(saved.read_text())["rsvo_node"]["ros__parameters"]
+        assert params["line_delay"] == 5e-5  # refined: written at once
+        assert "(refined)" in saved.read_text()
+    finally:
+        h.close()
+    h = Harness(ros_context, [Parameter("line_delay_mode", value="auto"),
+                              Parameter("line_delay_refine_frames", value=0)])
+    try:
+        h.feed(info, msgs[:2])
+        assert h.node.pipeline._refine_frames is None  # nothing kept
+        assert "line_delay_refinement" not in h.node._line_delay_diagnostics()
+    finally:
+        h.close()
+
+
 def test_compressed_image_transport_subscribes_to_the_compressed_topic(ros_context):
     """image_transport compressed: sensor_msgs/CompressedImage (PNG) published on
     /camera/image_raw/compressed reaches the node over DDS and gives the raw images'

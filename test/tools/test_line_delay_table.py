@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import json
+
 import matplotlib.image as mpimg
 
 from rsvo_ros.tools.line_delay_table import plot, summary, table, within
 
 
 def _row(group, true, est, ate_auto=0.1, ate_true=0.1, history=(), ate_two_pass=None,
-         refined=None):
+         refined=None, calibrator=None):
     return {"case": f"{group}{true}", "group": group, "line_delay_true_s": true,
             "estimate": {"line_delay_s": est, "std_s": None if est is None else 1e-6},
             "ate_auto_m": ate_auto, "ate_true_m": ate_true, "history": list(history),
@@ -17,7 +19,9 @@ def _row(group, true, est, ate_auto=0.1, ate_true=0.1, history=(), ate_two_pass=
             "estimate_rerun": {"line_delay_s": est, "std_s": None if est is None else 1e-6},
             "ate_auto_node_m": 2 * ate_auto,
             # rsvo_calibrate's: refined in a second pass
-            "estimate_refined": {"line_delay_s": est if refined is None else refined}}
+            "estimate_refined": {"line_delay_s": est if refined is None else refined},
+            # the calibrator's own estimate, before the pipeline refined it
+            "estimate_calibrator": {"line_delay_s": est if calibrator is None else calibrator}}
 
 
 def test_within_uses_the_relative_target_and_the_absolute_one_below_20_us():
@@ -29,11 +33,13 @@ def test_within_uses_the_relative_target_and_the_absolute_one_below_20_us():
 
 def test_summary_counts_per_group_and_the_figure_is_written(tmp_path):
     rows = [_row("held out", 5e-5, 5.2e-5, history=[[60, 7e-5], [100, 5.2e-5]]),
-            _row("held out", 1e-4, 1.3e-4, ate_auto=0.2, ate_two_pass=0.105, refined=1.05e-4),
+            _row("held out", 1e-4, 1.3e-4, ate_auto=0.2, ate_two_pass=0.105, refined=1.05e-4,
+                 calibrator=0.98e-4),
             _row("held out", 0.0, 0.0), _row("fresh", 3e-5, None)]
     text = summary(rows)
-    assert "- held out: line delay within 10 % on 1 of 2 rolling-shutter bags (with the " \
-           "re-runs: 1; rsvo_calibrate's, refined in a second pass: 2; global shutter 1 of 1), " \
+    assert "- held out: line delay within 10 % on 1 of 2 rolling-shutter bags (the " \
+           "calibrator's before the refinement: 2; with the re-runs: 1; rsvo_calibrate's, " \
+           "refined in a second pass: 2; global shutter 1 of 1), " \
            "ATE auto within 10 % of ATE true on 1 of 2 (as the node, without the " \
            "re-runs: 0; two passes: 2); global shutter within 2 us/row on 1 of 1, its ATE auto " \
            "within 10 % on 1 (as the node: 0)" in text
@@ -46,6 +52,27 @@ def test_summary_counts_per_group_and_the_figure_is_written(tmp_path):
     rows[3]["estimate"]["reason"] = "collecting"
     md = table(rows)
     assert "| rsvo_calibrate (refined) |" in md.splitlines()[0]
-    assert "| 105.0 (+5 %) |" in md.splitlines()[3]
+    assert "| 98.0 (-2 %) | 130.0 (+30 %) | 105.0 (+5 %) |" in md.splitlines()[3]
+    assert "| calibrator | with the re-runs |" in md.splitlines()[0]
     plot(tmp_path / "line_delay.png", rows)
     assert mpimg.imread(tmp_path / "line_delay.png").shape[1] > 500
+
+
+def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
+    """python -m rsvo_ros.tools.live_line_delay: the table's rolling-shutter cases fed to an
+    async-mapping pipeline at a camera's rate (newest frame first), one JSON row each and the
+    counts; bad arguments refused."""
+    from rsvo_ros.tools.live_line_delay import main as live_main
+    from rsvo_ros.tools.live_line_delay import within as live_within
+
+    out = tmp_path / "live.jsonl"
+    assert live_main(["--cases", "1", "--frames", "24", "--rate", "60", "--refine-frames", "0",
+                      "--json", str(out)]) == 0
+    row = json.loads(out.read_text().splitlines()[0])
+    assert row["case"] == "walk_sev1_seed0_ld20us" and row["frames"] == 24
+    assert 1 <= row["processed"] <= 24 and row["refinement"] is None
+    assert row["status"] == "collecting" and row["final_s"] is None  # 24 frames: too few
+    text = capsys.readouterr().out
+    assert "the calibrator's estimate within 10 % on 0 of 1 rolling-shutter cases" in text
+    assert live_within(5.4e-5, 5e-5) and not live_within(None, 5e-5)
+    assert live_main(["--rate", "0"]) == 2

@@ -799,6 +799,38 @@ def test_two_passes_replay_with_the_first_pass_estimate(walk_bag, tmp_path, caps
     assert "--two-pass needs --line-delay auto" in capsys.readouterr().err
 
 
+def test_replay_refines_the_estimate_after_its_first_frames(walk_bag, tmp_path, capsys):
+    """--line-delay-refine-frames N: after N frames the estimate is refined in a second pass
+    over them (the pipeline's line_delay_auto_refine_frames), used to the end and reported;
+    0 keeps the calibrator's; the flag needs auto and at least 30 frames."""
+    assert replay_main([str(walk_bag), "--output", str(tmp_path / "ref"), "--line-delay",
+                        "auto", "--no-line-delay-rerun", "--line-delay-refine-frames", "90",
+                        "--no-progress"]) == 0
+    s = json.loads((tmp_path / "ref" / "summary.json").read_text())
+    auto, ref = s["line_delay_auto"], s["line_delay_auto"]["refinement"]
+    assert ref["status"] == "refined" and auto["status"] == "refined", ref
+    assert s["line_delay_s"] == auto["line_delay_s"] == ref["line_delay_s"]
+    before = [h for h in auto["history"] if h["status"] != "refined"][-1]
+    assert ref["first_line_delay_s"] == before["line_delay_s"] != ref["line_delay_s"]
+    assert auto["history"][-1]["status"] == "refined"
+    out = capsys.readouterr().out
+    assert f"refined after 90 frames from {ref['first_line_delay_s'] * 1e6:.2f} us/row" in out
+    # two passes: the second runs with the refined estimate
+    assert replay_main([str(walk_bag), "--output", str(tmp_path / "two"), "--line-delay",
+                        "auto", "--two-pass", "--line-delay-refine-frames", "90",
+                        "--no-progress"]) == 0
+    two = json.loads((tmp_path / "two" / "summary.json").read_text())
+    assert two["two_pass"]["second_pass"], two["two_pass"]
+    assert two["line_delay_auto"]["status"] == "refined"
+    assert two["line_delay_s"] == two["line_delay_auto"]["line_delay_s"] == ref["line_delay_s"]
+    assert replay_main([str(walk_bag), "--output", str(tmp_path / "x"), "--line-delay", "auto",
+                        "--line-delay-refine-frames", "10"]) == 2
+    assert "at least 30" in capsys.readouterr().err
+    assert replay_main([str(walk_bag), "--output", str(tmp_path / "x"),
+                        "--line-delay-refine-frames", "60"]) == 2
+    assert "--line-delay-refine-frames needs --line-delay auto" in capsys.readouterr().err
+
+
 def test_a_processing_error_skips_that_frame_and_the_rest_is_processed(vehicle_bag, tmp_path,
                                                                        capsys, monkeypatch):
     """A fault of the package on one frame (here made to happen) is counted as that frame's,

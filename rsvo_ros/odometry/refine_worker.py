@@ -1,0 +1,118 @@
+"""The line-delay refinement of a live pipeline in a process of its own at the lowest CPU
+priority (``PipelineOptions.line_delay_auto_refine_frames`` with async mapping: the node).
+
+The pipeline writes the kept frames and its options to a file (:class:`RefineJob`), a
+``nice -n 19`` Python runs :func:`~rsvo_ros.odometry.pipeline.refine_pass` on them
+(``python -m rsvo_ros.odometry.refine_worker IN OUT``) and writes its result; the pipeline polls
+the process at each frame. A process, not a thread: on a thread the second pass held the GIL
+against the tracking and cost half the frames at 1280x720, 15 Hz (README, "Refining the
+estimate"); niced from its start, so that its imports take only what the tracking leaves too.
+"""
+
+from __future__ import annotations
+
+import pickle
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+from rsvo_ros.odometry.line_delay import RefinedLineDelay
+
+
+class RefineJob:
+    """One refinement in the background: ``args`` for ``refine_pass``; :meth:`done` polls,
+    :meth:`result` reads the outcome (status "failed" with the reason when the process did
+    not give one), :meth:`cancel` stops it. The inputs are written on a thread (large writes
+    release the GIL), then the process starts."""
+
+    def __init__(self, args: tuple):
+        self._dir = Path(tempfile.mkdtemp(prefix="rsvo_refine_"))
+        self._in, self._out = self._dir / "in.pickle", self._dir / "out.pickle"
+        self._proc: subprocess.Popen | None = None
+        self._error: str | None = None
+        self._cancelled = False
+        self._lock = threading.Lock()
+        self._starter = threading.Thread(target=self._start, args=(args,),
+                                         name="rsvo_line_delay_refine", daemon=True)  # fmt: skip
+        self._starter.start()
+
+    def _start(self, args: tuple) -> None:
+        try:
+            with open(self._in, "wb") as f:
+                pickle.dump(args, f, protocol=5)
+            nice = shutil.which("nice")
+            cmd = [sys.executable, "-m", "rsvo_ros.odometry.refine_worker", str(self._in),
+                   str(self._out)]  # fmt: skip
+            with self._lock:
+                if self._cancelled:
+                    return
+                self._proc = subprocess.Popen(([nice, "-n", "19"] if nice else []) + cmd,
+                                              stdout=subprocess.DEVNULL,
+                                              stderr=subprocess.PIPE)  # fmt: skip
+        except (OSError, pickle.PicklingError) as exc:
+            self._error = f"could not start the second pass: {exc!r}"
+
+    def done(self) -> bool:
+        if self._starter.is_alive():
+            return False
+        return self._proc is None or self._proc.poll() is not None
+
+    def wait(self, timeout: float) -> None:
+        """Until done, at most about ``timeout`` seconds."""
+        self._starter.join(timeout)
+        if self._proc is not None:
+            try:
+                self._proc.wait(timeout=max(timeout, 0.0))
+            except subprocess.TimeoutExpired:
+                pass
+
+    def result(self) -> RefinedLineDelay:
+        """The outcome once :meth:`done` (the files are removed then)."""
+        try:
+            if self._error is not None:
+                return RefinedLineDelay("failed", reason=self._error)
+            if self._proc is None or self._proc.poll() is None:
+                return RefinedLineDelay("failed", reason="the second pass did not finish")
+            if self._proc.returncode != 0 or not self._out.exists():
+                err = (self._proc.stderr.read() or b"").decode(errors="replace").strip()
+                last = err.splitlines()[-1] if err else "no message"
+                return RefinedLineDelay("failed", reason=f"the second pass's process exited "
+                                        f"with {self._proc.returncode}: {last}")  # fmt: skip
+            with open(self._out, "rb") as f:
+                return RefinedLineDelay(**pickle.load(f))
+        finally:
+            self.cancel()
+
+    def cancel(self) -> None:
+        """Stop the process (if running) and remove the files."""
+        with self._lock:
+            self._cancelled = True
+            if self._proc is not None and self._proc.poll() is None:
+                self._proc.kill()
+                self._proc.wait()
+            if self._proc is not None and self._proc.stderr is not None:
+                self._proc.stderr.close()
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rsvo_ros.odometry.refine_worker IN OUT``: ``refine_pass(*pickle(IN))``,
+    its result's fields pickled to OUT."""
+    from rsvo_ros.odometry.pipeline import refine_pass
+
+    src, dst = (argv if argv is not None else sys.argv[1:])[:2]
+    with open(src, "rb") as f:
+        args = pickle.load(f)
+    result = refine_pass(*args)
+    tmp = Path(dst).with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(result.as_dict(), f)
+    tmp.replace(dst)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

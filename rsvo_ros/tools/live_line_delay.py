@@ -1,0 +1,105 @@
+"""The live node's line-delay estimate on the line-delay table's bags, emulated in process.
+
+    python -m rsvo_ros.tools.live_line_delay [--rate 30] [--frames 210] [--json OUT.jsonl]
+
+For each rolling-shutter case of :mod:`rsvo_ros.tools.line_delay_table` the sequence is
+rendered (``--frames`` frames: the table's 150 and more, so that the refinement after 150
+processed frames has frames to come at), then fed to :class:`OdometryPipeline` as the node runs
+it: async mapping, ``line_delay_auto``, no re-runs, the refinement in its own niced process,
+frames arriving at ``--rate`` Hz with the node's newest-frame policy (a frame that arrives
+while another is processed waits; a newer one replaces it). Prints one JSON line per case (the
+calibrator's estimate before the refinement, the final one, frames processed, the refinement's
+status and time) and the counts within 10 % of the truth. Run it on an otherwise idle machine:
+what the node drops depends on the CPU it gets. The replay's table runs the same pipeline
+without async mapping and without pacing (README, "The pipeline refines its own estimate
+after 150 frames").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+
+from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
+from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
+from rsvo_ros.tools.line_delay_table import CASES
+
+
+def within(estimate: float | None, true: float) -> bool:
+    """The issue's target (as the table's): 10 %, or 2 us/row below 20 us/row."""
+    return estimate is not None and abs(estimate - true) <= (2e-6 if true < 2e-5
+                                                             else 0.10 * true)
+
+
+def run_case(motion: str, severity: float, seed: int, line_delay: float, frames: int,
+             rate: float, refine_frames: int = 150) -> dict:  # fmt: skip
+    renderer = SequenceRenderer(SynthConfig(frames=frames, motion=motion, severity=severity,
+                                            seed=seed, line_delay=line_delay))  # fmt: skip
+    images = [(round(f.stamp * 1e9), f.image) for f in renderer]  # rendered before the clock
+    options = PipelineOptions(line_delay_auto=True, line_delay_rerun_max_frames=0,
+                              line_delay_auto_refine_frames=refine_frames)  # fmt: skip
+    options.window.async_mapping = True
+    pipe = OdometryPipeline(renderer.K, None, 0.0, options)
+    t0, k, processed = time.perf_counter(), 0, 0
+    while k < len(images):
+        now = time.perf_counter() - t0
+        newest = min(int(now * rate), len(images) - 1)  # the newest frame that has arrived
+        if newest < k:
+            time.sleep(k / rate - now)
+            continue
+        pipe.process(*images[newest])
+        processed, k = processed + 1, newest + 1
+    at_end = pipe.line_delay_estimate.line_delay_s
+    pipe.close()  # a refinement still running is waited for
+    ref = pipe.line_delay_auto_refinement or {}
+    calibrator = ref.get("first_line_delay_s") or at_end
+    return {"case": f"{motion}_sev{severity:g}_seed{seed}_ld{line_delay * 1e6:g}us",
+            "line_delay_true_s": line_delay, "frames": frames, "processed": processed,
+            "calibrator_s": calibrator, "final_s": pipe.line_delay_estimate.line_delay_s,
+            "status": pipe.line_delay_estimate.status, "refinement": ref.get("status"),
+            "refinement_s": (ref.get("time_ms") or 0.0) / 1e3}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m rsvo_ros.tools.live_line_delay",
+                                description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rate", type=float, default=30.0, help="frames per second (30)")
+    p.add_argument("--frames", type=int, default=210, help="frames rendered per case (210)")
+    p.add_argument("--refine-frames", type=int, default=150,
+                   help="PipelineOptions.line_delay_auto_refine_frames (150; 0: off)")
+    p.add_argument("--cases", type=int, default=None, metavar="N",
+                   help="only the first N rolling-shutter cases")
+    p.add_argument("--json", default=None, metavar="FILE", help="also write the rows here")
+    args = p.parse_args(argv)
+    if args.rate <= 0 or args.frames < 2:
+        print("live_line_delay: --rate must be > 0 and --frames >= 2", file=sys.stderr)
+        return 2
+    cases = [c for c in CASES if c[4] > 0][:args.cases]
+    rows = []
+    for group, motion, severity, seed, ld in cases:
+        row = {"group": group, **run_case(motion, severity, seed, ld, args.frames, args.rate,
+                                          args.refine_frames)}  # fmt: skip
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
+    for key, label in (("calibrator_s", "the calibrator's"), ("final_s", "at the end")):
+        errors = [abs(r[key] - r["line_delay_true_s"]) / r["line_delay_true_s"] for r in rows
+                  if r[key] is not None]  # fmt: skip
+        print(f"live_line_delay: {label} estimate within 10 % on "
+              f"{sum(within(r[key], r['line_delay_true_s']) for r in rows)} of {len(rows)} "
+              f"rolling-shutter cases, median error "
+              f"{100 * statistics.median(errors) if errors else float('nan'):.1f} %")
+    print(f"live_line_delay: refined on {sum(r['refinement'] == 'refined' for r in rows)} of "
+          f"{len(rows)}; frames processed {min(r['processed'] for r in rows)}-"
+          f"{max(r['processed'] for r in rows)} of {args.frames}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
