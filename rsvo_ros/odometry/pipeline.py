@@ -576,6 +576,11 @@ class OdometryPipeline:
         self.window.close()
         if self._calibration_thread is not None:
             self._calibration_thread.join(timeout=60.0)
+        done, self._calibration_result = self._calibration_result, None
+        if done is not None and self.line_delay_estimate.status not in ("converged", "refined"):
+            # an estimate that finished after the last frame (async mapping: it runs on a
+            # thread, 1-2 s): taken, not lost (the node saves the last one at shutdown)
+            self._take_estimate(done, self._last_stamp or 0)
         job, self._refine_job = self._refine_job, None
         if job is not None:  # running after the last frame
             job[0].wait(refine_wait_s)

@@ -125,6 +125,25 @@ def test_without_rotation_it_says_so(auto_50):
     assert few.estimate(1 / 30).status == "collecting"
 
 
+def test_an_estimate_that_finishes_after_the_last_frame_is_taken_at_close():
+    """Async mapping: the estimate runs on a thread and is taken at the next frame; one that
+    finishes after the last frame is taken by close() (it was lost, and with it the node's
+    last estimate at shutdown); after a refinement a late one is not."""
+    K = np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]])
+    est = LineDelayEstimate("estimated", 4.2e-5, 2e-6, 0.45, 0.02, 7.6e-3, 9, 60)
+    options = PipelineOptions(line_delay_auto=True)
+    options.window.async_mapping = True
+    pipe = OdometryPipeline(K, None, 0.0, options)
+    pipe._calibration_result = est
+    pipe.close()
+    assert pipe.line_delay == 4.2e-5 and pipe.line_delay_history[-1]["line_delay_s"] == 4.2e-5
+    done = OdometryPipeline(K, None, 0.0, options)
+    done._take_estimate(dataclasses.replace(est, status="refined", line_delay_s=5e-5), 1)
+    done._calibration_result = est
+    done.close()
+    assert done.line_delay == 5e-5 and done.line_delay_estimate.status == "refined"
+
+
 def test_not_observable_at_first_goes_back_to_the_given_value():
     K = np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]])
     pipe = OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True))
