@@ -28,7 +28,7 @@ Pure numpy + the compiled window BA, no ROS.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -82,6 +82,18 @@ class LineDelayEstimate:
                 "readout_fraction": self.readout_fraction, "std_fraction": self.std_fraction,
                 "readout_s": self.readout_s,
                 "windows": self.windows, "frames": self.frames, "reason": self.reason}
+
+    def refined(self, line_delay_s: float, std_s: float) -> LineDelayEstimate:
+        """This estimate (with a non-zero line delay) refined to ``line_delay_s`` +- ``std_s``
+        (status "refined"): the readout and its fraction of the frame interval scale with
+        the line delay; the rest is kept."""
+        f = line_delay_s / self.line_delay_s
+        return replace(self, status="refined", line_delay_s=line_delay_s, std_s=std_s,
+                       readout_s=None if self.readout_s is None else self.readout_s * f,
+                       readout_fraction=None if self.readout_fraction is None
+                       else self.readout_fraction * f,
+                       std_fraction=None if self.readout_fraction is None
+                       else self.readout_fraction * std_s / self.line_delay_s)  # fmt: skip
 
 
 @dataclass

@@ -252,7 +252,7 @@ class OdometryPipeline:
             # line_delay_auto_refine_frames: the trajectory's frames for the refinement (None:
             # not kept), the refinement running in the background, and what it gave (summary)
             self._refine_frames: list[tuple[int, np.ndarray]] | None = None
-            # (RefineJob, first estimate, start time) while it runs
+            # (RefineJob, the estimate it refines, start time) while it runs
             self._refine_job: tuple | None = None
             self.line_delay_auto_refinement: dict | None = None
             if self.options.line_delay_auto and self.options.model == "rs":
@@ -484,44 +484,43 @@ class OdometryPipeline:
         if e.status not in ("estimated", "converged") or not e.line_delay_s:
             if len(frames) >= 2 * n:
                 self._refine_frames = None
-                self.line_delay_auto_refinement = {
-                    "status": "not refined", "frames": len(frames), "line_delay_s": None,
-                    "reason": f"no non-zero estimate after {len(frames)} frames ({e.status})"}
+                self._not_refined(len(frames), f"no non-zero estimate after {len(frames)} "
+                                               f"frames ({e.status})")  # fmt: skip
             return
         self._refine_frames = None  # once per camera
         rate = 1e9 / max(float(np.median(np.diff([st for st, _ in frames]))), 1.0)
-        if rate < self.options.line_delay_auto_refine_min_rate_hz:
-            self.line_delay_auto_refinement = {
-                "status": "not refined", "frames": len(frames), "line_delay_s": None,
-                "reason": f"the frames came at {rate:.1f} Hz, under the "
-                          f"{self.options.line_delay_auto_refine_min_rate_hz:g} Hz the "
-                          f"refinement needs"}  # fmt: skip
+        minimum = self.options.line_delay_auto_refine_min_rate_hz
+        if rate < minimum:
+            self._not_refined(len(frames), f"the frames came at {rate:.1f} Hz, under the "
+                                           f"{minimum:g} Hz the refinement needs")  # fmt: skip
             return
-        first, t0 = float(e.line_delay_s), time.perf_counter()
-        args = (self.K, self.D, first, self.options, frames)
+        t0 = time.perf_counter()
+        args = (self.K, self.D, float(e.line_delay_s), self.options, frames)
         if self.options.window.async_mapping:
             # the node: in a process of its own at the lowest CPU priority (refine_worker.py)
-            self._refine_job = (RefineJob(args), first, t0)
+            self._refine_job = (RefineJob(args), e, t0)
         else:
-            self._take_refined(refine_pass(*args), first, t0, stamp_ns)
+            self._take_refined(refine_pass(*args), e, t0, stamp_ns)
 
-    def _take_refined(self, ref: RefinedLineDelay, first: float, t0: float,
+    def _not_refined(self, frames: int, reason: str) -> None:
+        self.line_delay_auto_refinement = {"status": "not refined", "frames": frames,
+                                           "line_delay_s": None, "reason": reason}
+
+    def _take_refined(self, ref: RefinedLineDelay, start: LineDelayEstimate, t0: float,
                       stamp_ns: int) -> None:  # fmt: skip
-        """A finished refinement: a refined line delay replaces the estimate (as a new
-        estimate: the kept frames may run again with it); otherwise the estimate stays."""
+        """A finished refinement of the estimate ``start``: a refined line delay replaces the
+        estimate (as a new estimate: the kept frames may run again with it); otherwise the
+        estimate stays."""
+        first = float(start.line_delay_s)
         self.line_delay_auto_refinement = {
             **ref.as_dict(), "first_line_delay_s": first,
             "time_ms": (time.perf_counter() - t0) * 1e3, "stamp_ns": int(stamp_ns)}
         if ref.status != "refined" or not ref.line_delay_s or not np.isfinite(ref.line_delay_s):
             return
-        e, f = self.line_delay_estimate, ref.line_delay_s / first
-        scaled = (lambda x: None if x is None else x * f)  # noqa: E731
-        self._take_estimate(LineDelayEstimate(
-            "refined", ref.line_delay_s, ref.std_s, scaled(e.readout_fraction),
-            None if e.readout_fraction is None else e.readout_fraction * ref.std_s / first,
-            scaled(e.readout_s), e.windows, ref.frames,
-            f"refined in a second pass over {ref.frames} tracked frames ({ref.blocks} blocks) "
-            f"from {first * 1e6:.2f} us/row", e.curve), stamp_ns)
+        self._take_estimate(replace(
+            start.refined(ref.line_delay_s, ref.std_s), frames=ref.frames,
+            reason=f"refined in a second pass over {ref.frames} tracked frames ({ref.blocks} "
+                   f"blocks) from {first * 1e6:.2f} us/row"), stamp_ns)  # fmt: skip
 
     def _set_line_delay(self, line_delay: float) -> None:
         if line_delay != self.line_delay:

@@ -14,6 +14,7 @@ Exit codes: 0 estimated, 1 the bag cannot be used or the line delay is not obser
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 from pathlib import Path
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from rsvo_ros.core.readout import READOUTS
+from rsvo_ros.odometry.line_delay import LineDelayEstimate
 from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.params import params_yaml
@@ -136,14 +138,10 @@ def main(argv: list[str] | None = None) -> int:
 def refined_estimate(first: dict, refined: dict) -> dict:
     """The first estimate's dict (LineDelayEstimate.as_dict) with the second pass's refined
     line delay and its std (the readout and the fractions scaled with it)."""
-    out = dict(first)
-    f = refined["line_delay_s"] / first["line_delay_s"]
-    out.update(status="refined", line_delay_s=refined["line_delay_s"], std_s=refined["std_s"],
-               readout_s=first["readout_s"] * f,
-               readout_fraction=first["readout_fraction"] * f,
-               std_fraction=first["readout_fraction"] * refined["std_s"] / first["line_delay_s"],
-               first_line_delay_s=first["line_delay_s"])
-    return out
+    fields = {f.name for f in dataclasses.fields(LineDelayEstimate)} - {"curve"}
+    estimate = LineDelayEstimate(**{k: first[k] for k in fields})
+    return {**first, **estimate.refined(refined["line_delay_s"], refined["std_s"]).as_dict(),
+            "first_line_delay_s": first["line_delay_s"]}
 
 
 if __name__ == "__main__":

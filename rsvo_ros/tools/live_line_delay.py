@@ -26,12 +26,7 @@ import time
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.line_delay_table import CASES
-
-
-def within(estimate: float | None, true: float) -> bool:
-    """The issue's target (as the table's): 10 %, or 2 us/row below 20 us/row."""
-    return estimate is not None and abs(estimate - true) <= (2e-6 if true < 2e-5
-                                                             else 0.10 * true)
+from rsvo_ros.tools.line_delay_table import within_target as within
 
 
 def run_case(motion: str, severity: float, seed: int, line_delay: float, frames: int,
@@ -75,8 +70,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="only the first N rolling-shutter cases")
     p.add_argument("--json", default=None, metavar="FILE", help="also write the rows here")
     args = p.parse_args(argv)
-    if args.rate <= 0 or args.frames < 2:
-        print("live_line_delay: --rate must be > 0 and --frames >= 2", file=sys.stderr)
+    if args.rate <= 0 or args.frames < 2 or (args.cases is not None and args.cases < 1):
+        print("live_line_delay: --rate must be > 0, --frames >= 2 and --cases >= 1",
+              file=sys.stderr)
         return 2
     cases = [c for c in CASES if c[4] > 0][:args.cases]
     rows = []

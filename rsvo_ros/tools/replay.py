@@ -1037,7 +1037,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "frames, again with a later estimate over 10 %% away, at most "
                         "line_delay_reruns times; trajectory.tum and the accuracy get their new "
                         "poses)")
-    p.add_argument("--line-delay-refine-frames", type=int, default=150, metavar="N",
+    p.add_argument("--line-delay-refine-frames", type=int,
+                   default=PipelineOptions.line_delay_auto_refine_frames, metavar="N",
                    help="with --line-delay auto: after N frames, run them again at the "
                         "estimate with the map's shear removed and take the refined line delay "
                         "(as rsvo_calibrate's second pass, over the first N frames; a pause of "
@@ -1132,7 +1133,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_line_delay_rerun and not auto:
         print("rsvo_replay: --no-line-delay-rerun needs --line-delay auto", file=sys.stderr)
         return EXIT_USAGE
-    if args.line_delay_refine_frames != 150 and not auto:
+    if args.line_delay_refine_frames != PipelineOptions.line_delay_auto_refine_frames \
+            and not auto:
         print("rsvo_replay: --line-delay-refine-frames needs --line-delay auto", file=sys.stderr)
         return EXIT_USAGE
     if not 0 <= args.line_delay_refine_frames <= 100_000:

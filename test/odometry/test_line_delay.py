@@ -453,7 +453,7 @@ def test_auto_refinement_without_an_estimate_says_so_and_keeps_the_value():
     out = refine_pass(K, None, 5e-5, bad.options, [(0, None)])  # not an image
     assert out.status == "not observable" and "no frame was tracked" in out.reason
     assert refine_pass(K, None, -1.0, bad.options, []).status == "failed"
-    bad._take_refined(out, 5e-5, 0.0, 2)
+    bad._take_refined(out, bad.line_delay_estimate, 0.0, 2)
     assert bad.line_delay == 5e-5 and bad.line_delay_estimate.status == "estimated"
     assert bad.line_delay_auto_refinement["status"] == "not observable"
     with pytest.raises(ValueError, match="line_delay_auto_refine_frames"):

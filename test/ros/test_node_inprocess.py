@@ -645,10 +645,10 @@ def test_line_delay_refinement_is_reported_and_saved(ros_context, tmp_path):
         pipe = h.node.pipeline
         assert pipe.options.line_delay_auto_refine_frames == 40
         assert pipe._refine_frames is not None and len(pipe._refine_frames) == 2
-        pipe._take_estimate(LineDelayEstimate("estimated", 4.2e-5, 2e-6, 0.45, 0.02, 7.6e-3,
-                                              9, 60), 0)  # fmt: skip
+        est = LineDelayEstimate("estimated", 4.2e-5, 2e-6, 0.45, 0.02, 7.6e-3, 9, 60)
+        pipe._take_estimate(est, 0)
         pipe._take_refined(RefinedLineDelay("refined", 5e-5, 3e-6, 12, 60, "12 blocks"),
-                           4.2e-5, time.perf_counter(), 0)  # fmt: skip
+                           est, time.perf_counter(), 0)  # fmt: skip
         h.feed(info, msgs[2:3])
         diag = h.node._line_delay_diagnostics()
         assert diag["line_delay_status"] == diag["line_delay_refinement"] == "refined"

@@ -76,3 +76,4 @@ def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
     assert "the calibrator's estimate within 10 % on 0 of 1 rolling-shutter cases" in text
     assert live_within(5.4e-5, 5e-5) and not live_within(None, 5e-5)
     assert live_main(["--rate", "0"]) == 2
+    assert live_main(["--cases", "0"]) == 2  # no case: refused, not a crash on no rows
