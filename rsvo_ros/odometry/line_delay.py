@@ -28,6 +28,7 @@ Pure numpy + the compiled window BA, no ROS.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -124,6 +125,14 @@ class LineDelayCalibrator:
 
     def add_frame(self) -> None:
         self.frames += 1
+
+    def snapshot(self) -> LineDelayCalibrator:
+        """A copy to estimate on elsewhere (another process: it pickles), with the windows and
+        poses collected so far (the lists copied: mapping goes on adding to this one)."""
+        out = copy.copy(self)
+        out.windows = list(self.windows)
+        out._poses = list(self._poses)
+        return out
 
     def restart(self) -> None:
         """Forget the windows and poses (the odometry processes its frames again, with the

@@ -252,6 +252,7 @@ class OdometryPipeline:
             # line_delay_auto_refine_frames: the trajectory's frames for the refinement (None:
             # not kept), the refinement running in the background, and what it gave (summary)
             self._refine_frames: list[tuple[int, np.ndarray]] | None = None
+            self._refine_unprocessed = 0  # of them, frames the caller did not process
             # (RefineJob, the estimate it refines, start time) while it runs
             self._refine_job: tuple | None = None
             self.line_delay_auto_refinement: dict | None = None
@@ -342,6 +343,27 @@ class OdometryPipeline:
         res.revised, self._revised = self._revised, None
         return res
 
+    @property
+    def wants_unprocessed_frames(self) -> bool:
+        """True while the line-delay refinement keeps frames (:meth:`keep_unprocessed`)."""
+        return self._refine_frames is not None and not self._rerunning
+
+    def keep_unprocessed(self, stamp_ns: int, gray: np.ndarray) -> bool:
+        """A frame the caller drops unprocessed to keep up (the node's newest-frame policy),
+        given before the next processed frame: kept for the line-delay refinement's second
+        pass only, which then sees the camera's frames, as a replay of the recording does.
+        Not kept (False) when no refinement keeps frames, or for an image unlike the kept
+        ones (not uint8 gray, another size) or a stamp not after the last kept one."""
+        frames = self._refine_frames
+        if frames is None or self._rerunning or gray is None or gray.ndim != 2 \
+                or gray.dtype != np.uint8 or gray.size == 0:  # fmt: skip
+            return False
+        if frames and (gray.shape != frames[-1][1].shape or stamp_ns <= frames[-1][0]):
+            return False
+        frames.append((int(stamp_ns), gray.copy()))
+        self._refine_unprocessed += 1
+        return True
+
     def _process(self, stamp_ns: int, gray: np.ndarray) -> FrameResult:
         t0 = time.perf_counter()
         idx = self._index
@@ -363,7 +385,7 @@ class OdometryPipeline:
         if jump == "reset":
             back = (self._last_stamp - stamp_ns) * 1e-9
             if self._refine_frames is not None:  # the new trajectory's frames only
-                self._refine_frames = []
+                self._refine_frames, self._refine_unprocessed = [], 0
             self.reset()  # as a new pipeline: frame indices (and RANSAC seeds) start over
             res = self._process(stamp_ns, gray)
             res.time_reset = True
@@ -472,16 +494,21 @@ class OdometryPipeline:
 
     def _refine_step(self, stamp_ns: int) -> None:
         """line_delay_auto_refine_frames: take a finished refinement; start one when the
-        trajectory has its frames and an estimate (or give up without an estimate)."""
+        trajectory has its frames and an estimate or the windows for one (or give up without
+        them)."""
         job = self._refine_job
         if job is not None and job[0].done():
             self._refine_job = None
-            self._take_refined(job[0].result(), job[1], job[2], stamp_ns)
+            start, ref = job[0].result()
+            self._take_refined(ref, start or job[1], job[1], job[2], stamp_ns)
         frames, n = self._refine_frames, self.options.line_delay_auto_refine_frames
         if frames is None or len(frames) < n:
             return
-        e = self.line_delay_estimate
-        if e.status not in ("estimated", "converged") or not e.line_delay_s:
+        e, cal = self.line_delay_estimate, self.calibrator
+        ready = (e.status in ("estimated", "converged") and bool(e.line_delay_s)) or (
+            cal is not None and len(cal.windows) >= cal.options.min_windows
+            and cal.frames >= cal.options.min_frames)  # fmt: skip
+        if not ready:
             if len(frames) >= 2 * n:
                 self._refine_frames = None
                 self._not_refined(len(frames), f"no non-zero estimate after {len(frames)} "
@@ -495,32 +522,48 @@ class OdometryPipeline:
                                            f"{minimum:g} Hz the refinement needs")  # fmt: skip
             return
         t0 = time.perf_counter()
-        args = (self.K, self.D, float(e.line_delay_s), self.options, frames)
+        interval = (self.frame_interval_ns or 0.0) * 1e-9
         if self.options.window.async_mapping:
-            # the node: in a process of its own at the lowest CPU priority (refine_worker.py)
+            # the node: in a process of its own at the lowest CPU priority (refine_worker.py),
+            # the calibrator's windows so far with it (its own estimates lag on their thread)
+            args = (self.K, self.D, self.options, frames,
+                    None if cal is None else cal.snapshot(), interval, e)  # fmt: skip
             self._refine_job = (RefineJob(args), e, t0)
         else:
-            self._take_refined(refine_pass(*args), e, t0, stamp_ns)
+            start, ref = refine_from_estimate(self.K, self.D, self.options, frames, cal,
+                                              interval, e)  # fmt: skip
+            self._take_refined(ref, start, e, t0, stamp_ns)
 
     def _not_refined(self, frames: int, reason: str) -> None:
         self.line_delay_auto_refinement = {"status": "not refined", "frames": frames,
                                            "line_delay_s": None, "reason": reason}
 
-    def _take_refined(self, ref: RefinedLineDelay, start: LineDelayEstimate, t0: float,
-                      stamp_ns: int) -> None:  # fmt: skip
-        """A finished refinement of the estimate ``start``: a refined line delay replaces the
-        estimate (as a new estimate: the kept frames may run again with it); otherwise the
-        estimate stays."""
-        first = float(start.line_delay_s)
+    def _take_refined(self, ref: RefinedLineDelay, start: LineDelayEstimate,
+                      running: LineDelayEstimate, t0: float, stamp_ns: int) -> None:
+        """A finished refinement of the estimate ``start`` (over the calibrator's windows
+        when it began; ``running`` the estimate in use then): a refined line delay replaces
+        the estimate (as a new estimate: the kept frames may run again with it); otherwise
+        ``start``, if newer than the estimate in use now, replaces it."""
+        first = start.line_delay_s
         self.line_delay_auto_refinement = {
-            **ref.as_dict(), "first_line_delay_s": first,
+            **ref.as_dict(), "first_line_delay_s": first, "first_std_s": start.std_s,
+            "first_windows": start.windows,
+            "running_line_delay_s": running.line_delay_s,
+            "frames_unprocessed": self._refine_unprocessed,
             "time_ms": (time.perf_counter() - t0) * 1e3, "stamp_ns": int(stamp_ns)}
-        if ref.status != "refined" or not ref.line_delay_s or not np.isfinite(ref.line_delay_s):
+        if ref.status == "refined" and first and ref.line_delay_s \
+                and np.isfinite(ref.line_delay_s):  # fmt: skip
+            self._take_estimate(replace(
+                start.refined(ref.line_delay_s, ref.std_s), frames=ref.frames,
+                reason=f"refined in a second pass over {ref.frames} tracked frames "
+                       f"({ref.blocks} blocks) from {first * 1e6:.2f} us/row"),
+                stamp_ns)  # fmt: skip
             return
-        self._take_estimate(replace(
-            start.refined(ref.line_delay_s, ref.std_s), frames=ref.frames,
-            reason=f"refined in a second pass over {ref.frames} tracked frames ({ref.blocks} "
-                   f"blocks) from {first * 1e6:.2f} us/row"), stamp_ns)  # fmt: skip
+        now = self.line_delay_estimate
+        if start is not running and start.status in ("estimated", "converged") \
+                and now.status not in ("converged", "refined") \
+                and start.windows >= now.windows:  # fmt: skip
+            self._take_estimate(start, stamp_ns)
 
     def _set_line_delay(self, line_delay: float) -> None:
         if line_delay != self.line_delay:
@@ -583,7 +626,8 @@ class OdometryPipeline:
         job, self._refine_job = self._refine_job, None
         if job is not None:  # running after the last frame
             job[0].wait(refine_wait_s)
-            self._take_refined(job[0].result(), job[1], job[2], self._last_stamp or 0)
+            start, ref = job[0].result()
+            self._take_refined(ref, start or job[1], job[1], job[2], self._last_stamp or 0)
 
     @property
     def frame_interval_ns(self) -> float | None:
@@ -744,6 +788,35 @@ def refine_pass(K: np.ndarray, D: LensModel | None, line_delay: float,
         return second.refined_line_delay()
     except Exception as exc:  # noqa: BLE001 - the estimate it refines is kept
         return RefinedLineDelay("failed", reason=f"the second pass failed: {exc!r}")
+
+
+def refine_from_estimate(K: np.ndarray, D: LensModel | None, options: PipelineOptions,
+                         frames: list[tuple[int, np.ndarray]],
+                         calibrator: LineDelayCalibrator | None, frame_interval_s: float,
+                         running: LineDelayEstimate
+                         ) -> tuple[LineDelayEstimate, RefinedLineDelay]:  # fmt: skip
+    """line_delay auto's refinement after its first ``frames``: the ``calibrator``'s estimate
+    over all its windows so far (``running``, the estimate in use, where that gives none),
+    refined by :func:`refine_pass` over the frames. Returns the estimate it started from and
+    the refinement ("not refined" for a zero or no estimate: nothing to refine). The
+    calibrator's own estimates come every few windows and, with async mapping, on a thread
+    that falls behind: by the node's 150th frame they covered 5 of 9-44 windows on the
+    line-delay table's walks (README, "The pipeline refines its own estimate")."""
+    start = running
+    if calibrator is not None:
+        try:
+            full = calibrator.estimate(frame_interval_s)
+        except Exception as exc:  # noqa: BLE001 - the running estimate is refined instead
+            full = LineDelayEstimate("failed", reason=f"the estimate failed: {exc!r}")
+        if full.status in ("estimated", "converged") and full.line_delay_s is not None:
+            start = full
+    if start.status not in ("estimated", "converged") or not start.line_delay_s:
+        why = (f"the estimate over {start.windows} windows is 0 (a global shutter)"
+               if start.line_delay_s == 0.0 else f"no estimate ({start.status}: "
+               f"{start.reason})")  # fmt: skip
+        return start, RefinedLineDelay("not refined", frames=len(frames),
+                                       reason=f"{why}: nothing to refine")  # fmt: skip
+    return start, refine_pass(K, D, float(start.line_delay_s), options, frames)
 
 
 def warm_up() -> float:

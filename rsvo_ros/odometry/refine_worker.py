@@ -1,9 +1,11 @@
 """The line-delay refinement of a live pipeline in a process of its own at the lowest CPU
 priority (``PipelineOptions.line_delay_auto_refine_frames`` with async mapping: the node).
 
-The pipeline writes the kept frames and its options to a file (:class:`RefineJob`), a
-``nice -n 19`` Python runs :func:`~rsvo_ros.odometry.pipeline.refine_pass` on them
-(``python -m rsvo_ros.odometry.refine_worker IN OUT``) and writes its result; the pipeline polls
+The pipeline writes the kept frames, its options and its line-delay calibrator's windows to a
+file (:class:`RefineJob`), a ``nice -n 19`` Python runs
+:func:`~rsvo_ros.odometry.pipeline.refine_from_estimate` on them (an estimate over all the
+windows, then the second pass; ``python -m rsvo_ros.odometry.refine_worker IN OUT``) and
+writes its results; the pipeline polls
 the process at each frame. A process, not a thread: on a thread the second pass held the GIL
 against the tracking and cost half the frames at 1280x720, 15 Hz (README, "Refining the
 estimate"); niced from its start, so that its imports take only what the tracking leaves too.
@@ -11,6 +13,7 @@ estimate"); niced from its start, so that its imports take only what the trackin
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import shutil
 import subprocess
@@ -19,13 +22,13 @@ import tempfile
 import threading
 from pathlib import Path
 
-from rsvo_ros.odometry.line_delay import RefinedLineDelay
+from rsvo_ros.odometry.line_delay import LineDelayEstimate, RefinedLineDelay
 
 
 class RefineJob:
-    """One refinement in the background: ``args`` for ``refine_pass``; :meth:`done` polls,
-    :meth:`result` reads the outcome (status "failed" with the reason when the process did
-    not give one), :meth:`cancel` stops it. The inputs are written on a thread (large writes
+    """One refinement in the background: ``args`` for ``refine_from_estimate``; :meth:`done`
+    polls, :meth:`result` reads the outcome (status "failed" with the reason when the process
+    did not give one), :meth:`cancel` stops it. The inputs are written on a thread (large writes
     release the GIL), then the process starts."""
 
     def __init__(self, args: tuple):
@@ -69,20 +72,24 @@ class RefineJob:
             except subprocess.TimeoutExpired:
                 pass
 
-    def result(self) -> RefinedLineDelay:
-        """The outcome once :meth:`done` (the files are removed then)."""
+    def result(self) -> tuple[LineDelayEstimate | None, RefinedLineDelay]:
+        """The outcome once :meth:`done`: the estimate refined (None when the process gave
+        none) and the refinement (status "failed" with the reason when the process did not
+        finish it). The files are removed then."""
         try:
             if self._error is not None:
-                return RefinedLineDelay("failed", reason=self._error)
+                return None, RefinedLineDelay("failed", reason=self._error)
             if self._proc is None or self._proc.poll() is None:
-                return RefinedLineDelay("failed", reason="the second pass did not finish")
+                return None, RefinedLineDelay("failed", reason="the second pass did not finish")
             if self._proc.returncode != 0 or not self._out.exists():
                 err = (self._proc.stderr.read() or b"").decode(errors="replace").strip()
                 last = err.splitlines()[-1] if err else "no message"
-                return RefinedLineDelay("failed", reason=f"the second pass's process exited "
-                                        f"with {self._proc.returncode}: {last}")  # fmt: skip
+                return None, RefinedLineDelay(
+                    "failed", reason=f"the second pass's process exited with "
+                                     f"{self._proc.returncode}: {last}")  # fmt: skip
             with open(self._out, "rb") as f:
-                return RefinedLineDelay(**pickle.load(f))
+                start, ref = pickle.load(f)
+            return LineDelayEstimate(**start), RefinedLineDelay(**ref)
         finally:
             self.cancel()
 
@@ -99,17 +106,17 @@ class RefineJob:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m rsvo_ros.odometry.refine_worker IN OUT``: ``refine_pass(*pickle(IN))``,
-    its result's fields pickled to OUT."""
-    from rsvo_ros.odometry.pipeline import refine_pass
+    """``python -m rsvo_ros.odometry.refine_worker IN OUT``:
+    ``refine_from_estimate(*pickle(IN))``, its results' fields pickled to OUT."""
+    from rsvo_ros.odometry.pipeline import refine_from_estimate
 
     src, dst = (argv if argv is not None else sys.argv[1:])[:2]
     with open(src, "rb") as f:
         args = pickle.load(f)
-    result = refine_pass(*args)
+    start, ref = refine_from_estimate(*args)
     tmp = Path(dst).with_suffix(".tmp")
     with open(tmp, "wb") as f:
-        pickle.dump(result.as_dict(), f)
+        pickle.dump((dataclasses.asdict(start), ref.as_dict()), f)
     tmp.replace(dst)
     return 0
 

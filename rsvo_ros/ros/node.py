@@ -86,6 +86,8 @@ LARGE_IMAGE_HINT_MS = (8.0, 1000.0)
 RESET_SERVICE = "rsvo/reset"
 # shutdown: how long a line-delay refinement still running may take to finish (then stopped)
 NODE_REFINE_WAIT_S = 2.0
+# images dropped between two processed frames kept for the line-delay refinement (at most)
+DROPPED_KEPT_MAX = 30
 TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -121,7 +123,10 @@ class RsvoNode(Node):
         self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
                       "held": 0, "time_resets": 0, "map_refound": 0,
                       "brightness_compensated": 0, "fault_resets": 0,
-                      "frames_revised": 0}  # fmt: skip
+                      "frames_revised": 0, "dropped_kept": 0}  # fmt: skip
+        # dropped images the line-delay refinement keeps for its second pass (converted on
+        # the worker, before the next frame it processes; the callback only queues them)
+        self._dropped: deque = deque(maxlen=DROPPED_KEPT_MAX)
         self._bad_kinds: set[str] = set()
         self._faults = 0  # processing errors in a row (FAULT_RESET_AFTER)
         self._recv_times: deque = deque(maxlen=100)
@@ -281,6 +286,9 @@ class RsvoNode(Node):
             self.stats["received"] += 1
             if self._pending is not None:
                 self.stats["dropped"] += 1  # the worker is busy: keep only the newest
+                pipeline = self.pipeline
+                if pipeline is not None and pipeline.wants_unprocessed_frames:
+                    self._dropped.append(self._pending[0])  # for the refinement's second pass
             self._pending = (msg, time.monotonic())
         self._wake.set()
 
@@ -391,6 +399,7 @@ class RsvoNode(Node):
                     self._bad(f"no camera info on {self.p['camera_info_topic']} yet")
                 self._waiting = (msg, t_recv)
             return
+        self._keep_dropped()
         try:
             gray = image_to_gray(msg)
         except ValueError as exc:
@@ -436,6 +445,25 @@ class RsvoNode(Node):
         t_pub = time.perf_counter()
         self._publish(msg, res, gray)
         self._publish_ms.append((time.perf_counter() - t_pub) * 1e3)
+
+    def _keep_dropped(self) -> None:
+        """The images dropped since the last processed frame, handed to the line-delay
+        refinement (``line_delay_refine_frames``): its second pass then runs over the camera's
+        frames, not only those the node kept up with, as a replay of the recording does."""
+        with self._lock:
+            if not self._dropped:
+                return
+            dropped = list(self._dropped)
+            self._dropped.clear()
+        for msg in dropped:
+            try:
+                gray = image_to_gray(msg)
+            except ValueError:
+                continue  # a bad image is counted when processed, not here
+            with self._pipeline_lock:
+                if self.pipeline is not None \
+                        and self.pipeline.keep_unprocessed(stamp_ns(msg.header), gray):
+                    self.stats["dropped_kept"] += 1
 
     def _take_revised(self, revised: list[FrameResult]) -> None:
         """line_delay_rerun: the frames before the first line-delay estimate, processed again

@@ -9,9 +9,11 @@ processed again with it, and with later estimates away from it), with the true l
 with 0 (a global-shutter model of an RS camera). The "estimate" is the pipeline's after
 the bag's 150 frames, as the node makes it (no re-runs; refined after 150 frames,
 ``PipelineOptions.line_delay_auto_refine_frames``; the one the second pass takes); beside it
-the calibrator's own estimate before that refinement (the node's until the twenty-fifth
-session), the one-pass replay's (with the re-runs, refined too), and ``rsvo_calibrate``'s:
-the calibrator's estimate refined in a second pass over the whole bag
+the calibrator's own estimate that the refinement started from (over all its windows at frame
+150, since the twenty-sixth session; before it, and the node's until the twenty-fifth session,
+its last estimate, kept in the JSON as ``estimate_calibrator_last``), the one-pass replay's
+(with the re-runs, refined too), and ``rsvo_calibrate``'s: the calibrator's last estimate
+refined in a second pass over the whole bag
 (``PipelineOptions.line_delay_refine``; the same frames here).
 Columns: the true and the estimated line delay (with the bootstrap uncertainty), the relative
 error, and the ATE of each replay. Seeds 0, 100 and 101 (walks) and 0 (vehicle, handheld) were
@@ -100,20 +102,25 @@ def run_case(out: Path, motion: str, severity: float, seed: int, line_delay: flo
     row["line_delay_used_s"] = s["two_pass"]["first_pass_line_delay_s"]
     history = s["line_delay_auto"].get("history", [])
     row["history"] = [[h["frames"], h["line_delay_s"]] for h in history]
-    # the calibrator's own estimate, before the pipeline refined it after 150 frames
-    # (PipelineOptions.line_delay_auto_refine_frames; the node's and the table's estimate
-    # before the twenty-fifth session)
+    # the calibrator's own estimates, before the pipeline refined them after 150 frames
+    # (PipelineOptions.line_delay_auto_refine_frames): its last one (the node's and the
+    # table's estimate before the twenty-fifth session; rsvo_calibrate's first pass ends with
+    # it), and the one over all its windows at frame 150 that the refinement started from
     calibrator = [h for h in history if h["status"] != "refined" and h["line_delay_s"]
                   is not None]  # fmt: skip
-    row["estimate_calibrator"] = ({k: calibrator[-1][k] for k in ("line_delay_s", "std_s",
-                                                                  "status", "reason")}
-                                  if calibrator else dict(row["estimate"]))  # fmt: skip
-    row["refinement"] = s["line_delay_auto"].get("refinement")
-    # rsvo_calibrate's: the calibrator's estimate refined in a second pass over the whole bag
-    # (a zero one kept)
-    first = row["estimate_calibrator"]["line_delay_s"]
+    last = ({k: calibrator[-1][k] for k in ("line_delay_s", "std_s", "status", "reason")}
+            if calibrator else dict(row["estimate"]))  # fmt: skip
+    ref = row["refinement"] = s["line_delay_auto"].get("refinement")
+    row["estimate_calibrator"] = row["estimate_calibrator_last"] = last
+    if ref is not None and ref.get("first_line_delay_s") is not None:
+        row["estimate_calibrator"] = {"line_delay_s": ref["first_line_delay_s"],
+                                      "std_s": ref.get("first_std_s"), "status": "estimated",
+                                      "reason": f"over {ref['first_windows']} windows"}
+    # rsvo_calibrate's: the calibrator's last estimate refined in a second pass over the
+    # whole bag (a zero one kept)
+    first = last["line_delay_s"]
     row["estimate_refined"] = {"line_delay_s": first,
-                               "std_s": row["estimate_calibrator"]["std_s"],
+                               "std_s": last["std_s"],
                                "status": "first kept",
                                "reason": "no estimate" if first is None
                                else "a zero line delay (a global shutter) is kept"}
@@ -158,9 +165,13 @@ def summary(rows: list[dict]) -> str:
         refined = sum(within(r, "estimate_refined") for r in rs)
         zero_refined = sum(within(r, "estimate_refined") for r in gs)
         first = sum(within(r, "estimate_calibrator") for r in rs)
+        last = sum(within(r, "estimate_calibrator_last") for r in rs
+                   if "estimate_calibrator_last" in r)  # fmt: skip
         out.append(f"- {group}: line delay within 10 % on {sum(within(r) for r in rs)} of "
-                   f"{len(rs)} rolling-shutter bags (the calibrator's before the refinement: "
-                   f"{first}; with the re-runs: {reran}; rsvo_calibrate's, "
+                   f"{len(rs)} rolling-shutter bags (the calibrator's where the "
+                   f"refinement started: {first}; its last estimate: {last}; with the "
+                   f"re-runs: {reran}; "
+                   f"rsvo_calibrate's, "
                    f"refined in a second pass: {refined}; global shutter {zero_refined} of "
                    f"{len(gs)}), ATE auto "
                    f"within 10 % of ATE true on {near('ate_auto_m', rs)} of {len(rs)} (as the "

@@ -17,7 +17,12 @@ from rsvo_ros.odometry.line_delay import (
     LineDelayOptions,
     parabola_min,
 )
-from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions, refine_pass
+from rsvo_ros.odometry.pipeline import (
+    OdometryPipeline,
+    PipelineOptions,
+    refine_from_estimate,
+    refine_pass,
+)
 from rsvo_ros.odometry.refine_worker import RefineJob
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import accuracy
@@ -379,11 +384,15 @@ def test_auto_refines_its_estimate_in_a_second_pass_over_the_first_frames():
             assert before.status == "estimated"
         if k == n - 1:  # the n-th frame: refined before the next one
             first = before.line_delay_s
-    windows = len(pipe.calibrator.windows)
+            windows = len(pipe.calibrator.windows)
+            snapshot = pipe.calibrator.snapshot()  # its windows then
     pipe.close()
     ref = pipe.line_delay_auto_refinement
     e = pipe.line_delay_estimate
-    assert ref["status"] == "refined" and ref["first_line_delay_s"] == first, ref
+    # it started from the calibrator's estimate over all its windows then, not the running one
+    assert ref["status"] == "refined" and ref["running_line_delay_s"] == first, ref
+    assert ref["first_windows"] == windows >= 5, ref
+    first = ref["first_line_delay_s"]
     assert e.status == "refined" and e.line_delay_s == ref["line_delay_s"] != first
     assert pipe.line_delay == e.line_delay_s and pipe.window.line_delay == e.line_delay_s
     assert pipe.line_delay_history[-1]["status"] == "refined"
@@ -395,31 +404,58 @@ def test_auto_refines_its_estimate_in_a_second_pass_over_the_first_frames():
     second.close()
     assert second.refined_line_delay().line_delay_s == ref["line_delay_s"]
     assert abs(ref["line_delay_s"] - 5e-5) < 0.15 * 5e-5, ref
-    # the calibrator stopped: no window added after the refinement is used
-    assert len(pipe.calibrator.windows) == windows
+    # the calibrator stopped: no estimate after the refinement
+    assert [h["status"] for h in pipe.line_delay_history].count("refined") == 1
 
     # async mapping (the node): in a process of its own at the lowest priority, taken at a
-    # later frame or at close(); fed here with the frames and an estimate of 5e-5 (fed as fast
-    # as they come, its async windows are too few for an estimate within these frames)
+    # later frame or at close(), with the calibrator's windows (here those of the pipeline
+    # above: their estimate is the one it started from) and a running estimate of 5e-5
     options = PipelineOptions(line_delay_auto=True, line_delay_rerun_max_frames=0,
                               line_delay_auto_refine_frames=60)
     options.window.async_mapping = True
     live = OdometryPipeline(K, None, 0.0, options)
-    live._refine_frames = list(frames[:59])
+    live._refine_frames = list(frames[:58])
+    live.calibrator = snapshot
     live._take_estimate(LineDelayEstimate("estimated", 5e-5, 1e-6, 0.54, 0.01, 0.018, 5, 59), 1)
-    live.process(*frames[59])
+    live.process(*frames[58])
+    assert live._refine_job is None
+    live.process(*frames[59])  # the 60th frame, the second with a frame interval
     assert live._refine_job is not None and live.line_delay_auto_refinement is None
     live.close()  # waits for it
-    ref = live.line_delay_auto_refinement
-    assert ref is not None and ref["status"] == "refined" and ref["time_ms"] > 0, ref
-    assert ref["first_line_delay_s"] == 5e-5 and ref["frames"] > 25
-    assert live.line_delay == ref["line_delay_s"] > 0
+    ref_live = live.line_delay_auto_refinement
+    assert ref_live is not None and ref_live["status"] == "refined" and ref_live["time_ms"] > 0
+    assert ref_live["running_line_delay_s"] == 5e-5 and ref_live["frames"] > 25
+    assert ref_live["first_line_delay_s"] == first and ref_live["first_windows"] == windows
+    assert live.line_delay == ref_live["line_delay_s"] > 0
     assert live.line_delay_estimate.status == "refined"
-    second = OdometryPipeline(K, None, 5e-5, PipelineOptions(line_delay_refine=True))
+    second = OdometryPipeline(K, None, first, PipelineOptions(line_delay_refine=True))
     for stamp, image in frames[:60]:
         second.process(stamp, image)
-    assert second.refined_line_delay().line_delay_s == ref["line_delay_s"]  # the same pass
+    assert second.refined_line_delay().line_delay_s == ref_live["line_delay_s"]  # the same
     second.close()
+
+
+def test_frames_the_caller_drops_are_kept_for_the_refinement():
+    """keep_unprocessed: frames the caller drops unprocessed (the node's newest-frame policy)
+    join the refinement's frames in stamp order, counted; not kept without a refinement that
+    keeps frames, for an image unlike the kept ones or a stamp not after the last kept one."""
+    K, frames = _walk_frames(4)
+    pipe = OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True,
+                                                          line_delay_auto_refine_frames=30))
+    assert pipe.wants_unprocessed_frames
+    pipe.process(*frames[0])
+    assert pipe.keep_unprocessed(*frames[1])
+    assert not pipe.keep_unprocessed(*frames[1])  # not after the last kept one
+    assert not pipe.keep_unprocessed(frames[2][0], frames[2][1][:-1])  # another size
+    assert not pipe.keep_unprocessed(frames[2][0], frames[2][1].astype(np.float32))
+    pipe.process(*frames[2])
+    assert [st for st, _ in pipe._refine_frames] == [st for st, _ in frames[:3]]
+    assert pipe._refine_unprocessed == 1
+    assert pipe._refine_frames[1][1] is not frames[1][1]  # a copy
+    pipe.close()
+    fixed = OdometryPipeline(K, None, 5e-5, PipelineOptions())
+    assert not fixed.wants_unprocessed_frames and not fixed.keep_unprocessed(*frames[0])
+    fixed.close()
 
 
 def test_auto_refinement_without_an_estimate_says_so_and_keeps_the_value():
@@ -453,9 +489,21 @@ def test_auto_refinement_without_an_estimate_says_so_and_keeps_the_value():
     out = refine_pass(K, None, 5e-5, bad.options, [(0, None)])  # not an image
     assert out.status == "not observable" and "no frame was tracked" in out.reason
     assert refine_pass(K, None, -1.0, bad.options, []).status == "failed"
-    bad._take_refined(out, bad.line_delay_estimate, 0.0, 2)
+    e = bad.line_delay_estimate
+    bad._take_refined(out, e, e, 0.0, 2)
     assert bad.line_delay == 5e-5 and bad.line_delay_estimate.status == "estimated"
     assert bad.line_delay_auto_refinement["status"] == "not observable"
+    # a zero estimate (a global shutter) or none: nothing to refine, no second pass
+    zero = LineDelayEstimate("converged", 0.0, 0.0, 0.0, 0.0, 0.0, 16, 150)
+    start, r = refine_from_estimate(K, None, bad.options, [(0, None)], None, 1 / 30, zero)
+    assert start is zero and r.status == "not refined"
+    assert "over 16 windows is 0 (a global shutter)" in r.reason
+    start, r = refine_from_estimate(K, None, bad.options, [], None, 1 / 30,
+                                    LineDelayEstimate("collecting", reason="3 windows"))
+    assert r.status == "not refined" and "no estimate (collecting: 3 windows)" in r.reason
+    # ... which, newer than the estimate in use, is taken
+    bad._take_refined(r, zero, e, 0.0, 3)
+    assert bad.line_delay_estimate is zero and bad.line_delay == 0.0
     with pytest.raises(ValueError, match="line_delay_auto_refine_frames"):
         OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True,
                                                        line_delay_auto_refine_frames=-1))
@@ -468,8 +516,9 @@ def test_a_refinement_process_that_fails_says_why():
     job = RefineJob(("not", "the arguments"))
     job.wait(120.0)
     assert job.done()
-    r = job.result()
-    assert r.status == "failed" and "exited with 1" in r.reason and "TypeError" in r.reason, r
+    start, r = job.result()
+    assert start is None and r.status == "failed" and "exited with 1" in r.reason \
+        and "TypeError" in r.reason, r
     assert not job._dir.exists()
     # a pipeline closed before its refinement finished (the node's shutdown): stopped, said
     K, frames = _walk_frames(31)

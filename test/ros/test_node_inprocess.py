@@ -627,8 +627,10 @@ def test_line_delay_save_file_is_the_next_start(ros_context, tmp_path):
 
 
 def test_line_delay_refinement_is_reported_and_saved(ros_context, tmp_path):
-    """line_delay_refine_frames reaches the pipeline; a refined estimate is used, shown in the
-    diagnostics beside the first one, and written to line_delay_save_file at once; 0: off."""
+    """line_delay_refine_frames reaches the pipeline; images the node drops while busy are
+    kept for it (its second pass sees the camera's frames); a refined estimate is used, shown
+    in the diagnostics beside the first one, and written to line_delay_save_file at once; 0:
+    off."""
     import time
 
     import yaml
@@ -640,16 +642,29 @@ def test_line_delay_refinement_is_reported_and_saved(ros_context, tmp_path):
                               Parameter("line_delay_refine_frames", value=40),
                               Parameter("line_delay_save_file", value=str(saved))])
     try:
-        info, msgs = _frames(3)
+        info, msgs = _frames(6)
         h.feed(info, msgs[:2])
         pipe = h.node.pipeline
         assert pipe.options.line_delay_auto_refine_frames == 40
         assert pipe._refine_frames is not None and len(pipe._refine_frames) == 2
+        # the worker busy with frame 2 (held at the pipeline's lock): 3 is dropped for 4
+        with h.node._pipeline_lock:
+            h.node._on_image(msgs[2])
+            t_end = time.monotonic() + 10.0
+            while h.node._pending is not None and time.monotonic() < t_end:
+                time.sleep(0.01)  # the worker has taken frame 2
+            h.node._on_image(msgs[3])
+            h.node._on_image(msgs[4])
+        h._idle()
+        assert h.node.stats["dropped"] == 1 and h.node.stats["dropped_kept"] == 1
+        assert h.node.stats["processed"] == 4
+        assert [st for st, _ in pipe._refine_frames] == [_stamp(m) for m in msgs[:5]]
+        assert pipe._refine_unprocessed == 1
         est = LineDelayEstimate("estimated", 4.2e-5, 2e-6, 0.45, 0.02, 7.6e-3, 9, 60)
         pipe._take_estimate(est, 0)
         pipe._take_refined(RefinedLineDelay("refined", 5e-5, 3e-6, 12, 60, "12 blocks"),
-                           est, time.perf_counter(), 0)  # fmt: skip
-        h.feed(info, msgs[2:3])
+                           est, est, time.perf_counter(), 0)  # fmt: skip
+        h.feed(info, msgs[5:6])
         diag = h.node._line_delay_diagnostics()
         assert diag["line_delay_status"] == diag["line_delay_refinement"] == "refined"
         assert diag["line_delay_first_estimate"] == "4.2e-05"

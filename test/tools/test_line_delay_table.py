@@ -36,9 +36,11 @@ def test_summary_counts_per_group_and_the_figure_is_written(tmp_path):
             _row("held out", 1e-4, 1.3e-4, ate_auto=0.2, ate_two_pass=0.105, refined=1.05e-4,
                  calibrator=0.98e-4),
             _row("held out", 0.0, 0.0), _row("fresh", 3e-5, None)]
+    rows[1]["estimate_calibrator_last"] = {"line_delay_s": 1.02e-4}  # not in older rows
     text = summary(rows)
     assert "- held out: line delay within 10 % on 1 of 2 rolling-shutter bags (the " \
-           "calibrator's before the refinement: 2; with the re-runs: 1; rsvo_calibrate's, " \
+           "calibrator's where the refinement started: 2; its last estimate: 1; with the " \
+           "re-runs: 1; rsvo_calibrate's, " \
            "refined in a second pass: 2; global shutter 1 of 1), " \
            "ATE auto within 10 % of ATE true on 1 of 2 (as the node, without the " \
            "re-runs: 0; two passes: 2); global shutter within 2 us/row on 1 of 1, its ATE auto " \
@@ -73,7 +75,10 @@ def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
     assert 1 <= row["processed"] <= 24 and row["refinement"] is None
     assert row["status"] == "collecting" and row["final_s"] is None  # 24 frames: too few
     text = capsys.readouterr().out
-    assert "the calibrator's estimate within 10 % on 0 of 1 rolling-shutter cases" in text
+    assert "the calibrator's estimate over all its windows within 10 % on 0 of 1 " \
+        "rolling-shutter cases" in text
+    assert "the estimate in use (the calibrator thread's last) within 10 % on 0 of 1" in text
+    assert row["refinement_frames_unprocessed"] is None and row["running_s"] is None
     assert live_within(5.4e-5, 5e-5) and not live_within(None, 5e-5)
     assert live_main(["--rate", "0"]) == 2
     assert live_main(["--cases", "0"]) == 2  # no case: refused, not a crash on no rows
