@@ -560,7 +560,7 @@ class OdometryPipeline:
                 stamp_ns)  # fmt: skip
             return
         now = self.line_delay_estimate
-        if start is not running and start.status in ("estimated", "converged") \
+        if start != running and start.status in ("estimated", "converged") \
                 and now.status not in ("converged", "refined") \
                 and start.windows >= now.windows:  # fmt: skip
             self._take_estimate(start, stamp_ns)
@@ -800,8 +800,9 @@ def refine_from_estimate(K: np.ndarray, D: LensModel | None, options: PipelineOp
     refined by :func:`refine_pass` over the frames. Returns the estimate it started from and
     the refinement ("not refined" for a zero or no estimate: nothing to refine). The
     calibrator's own estimates come every few windows and, with async mapping, on a thread
-    that falls behind: by the node's 150th frame they covered 5 of 9-44 windows on the
-    line-delay table's walks (README, "The pipeline refines its own estimate")."""
+    that falls behind: by the node's 150th frame they covered 5 of the 9-52 windows, or none,
+    on the line-delay table's sequences (README, "The node's refinement: all the windows, all
+    the frames")."""
     start = running
     if calibrator is not None:
         try:

@@ -490,9 +490,11 @@ def test_auto_refinement_without_an_estimate_says_so_and_keeps_the_value():
     assert out.status == "not observable" and "no frame was tracked" in out.reason
     assert refine_pass(K, None, -1.0, bad.options, []).status == "failed"
     e = bad.line_delay_estimate
-    bad._take_refined(out, e, e, 0.0, 2)
+    history = len(bad.line_delay_history)
+    bad._take_refined(out, dataclasses.replace(e), e, 0.0, 2)  # a copy, from the process
     assert bad.line_delay == 5e-5 and bad.line_delay_estimate.status == "estimated"
     assert bad.line_delay_auto_refinement["status"] == "not observable"
+    assert len(bad.line_delay_history) == history  # the estimate in use, not taken again
     # a zero estimate (a global shutter) or none: nothing to refine, no second pass
     zero = LineDelayEstimate("converged", 0.0, 0.0, 0.0, 0.0, 0.0, 16, 150)
     start, r = refine_from_estimate(K, None, bad.options, [(0, None)], None, 1 / 30, zero)
