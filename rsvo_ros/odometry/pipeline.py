@@ -459,7 +459,11 @@ class OdometryPipeline:
             if self._rerun_due:  # the frames so far run again first, and feed it anew
                 return
         running = self._calibration_thread is not None and self._calibration_thread.is_alive()
-        if running or not cal.due():
+        if running or not cal.due() or self._refine_job is not None:
+            # (while the refinement runs, in its process, the calibrator waits: the
+            # refinement estimates over all its windows itself, and its result replaces any
+            # estimate the calibrator would make meanwhile; on the node the two took the CPU
+            # from the tracking and from each other)
             return
         interval = (self.frame_interval_ns or 0.0) * 1e-9
         if o.window.async_mapping:

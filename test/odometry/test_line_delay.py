@@ -421,6 +421,11 @@ def test_auto_refines_its_estimate_in_a_second_pass_over_the_first_frames():
     assert live._refine_job is None
     live.process(*frames[59])  # the 60th frame, the second with a frame interval
     assert live._refine_job is not None and live.line_delay_auto_refinement is None
+    # while it runs the calibrator makes no estimate of its own, even when one is due
+    live.calibrator._since_estimate = 99
+    assert live.calibrator.due()
+    live.process(*frames[60])
+    assert live._calibration_thread is None and live._refine_job is not None
     live.close()  # waits for it
     ref_live = live.line_delay_auto_refinement
     assert ref_live is not None and ref_live["status"] == "refined" and ref_live["time_ms"] > 0
