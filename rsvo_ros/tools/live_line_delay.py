@@ -7,13 +7,14 @@ rendered (``--frames`` frames: the table's 150 and more, so that the refinement 
 processed frames has frames to come at), then fed to :class:`OdometryPipeline` as the node runs
 it: async mapping, ``line_delay_auto``, no re-runs, the refinement in its own niced process,
 frames arriving at ``--rate`` Hz with the node's newest-frame policy (a frame that arrives
-while another is processed waits; a newer one replaces it). Prints one JSON line per case (the
-estimate in use when the refinement began, the calibrator's over all its windows then, which
-the refinement starts from, the final one, frames processed, the refinement's
-status and time) and the counts within 10 % of the truth. Run it on an otherwise idle machine:
-what the node drops depends on the CPU it gets. The replay's table runs the same pipeline
-without async mapping and without pacing (README, "The pipeline refines its own estimate
-after 150 frames").
+while another is processed waits; a newer one replaces it, and the replaced one goes to the
+refinement's second pass, as the node hands it over; ``--no-keep-dropped``: not). Prints one
+JSON line per case (the estimate in use when the refinement began, the calibrator's over all
+its windows then, which the refinement starts from, the final one, frames processed, the
+refinement's status and time) and the counts within 10 % of the truth. Run it on an otherwise
+idle machine: what the node drops depends on the CPU it gets. The replay's table runs the same
+pipeline without async mapping and without pacing (README, "The pipeline refines its own
+estimate after 150 frames", "The node's refinement: all the windows, all the frames").
 """
 
 from __future__ import annotations
