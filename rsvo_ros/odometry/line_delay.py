@@ -173,10 +173,15 @@ class LineDelayCalibrator:
         self._since_estimate += 1
         return True
 
+    def has_data(self) -> bool:
+        """The windows and frames a first estimate needs (``min_windows``, ``min_frames``)."""
+        return len(self.windows) >= self.options.min_windows \
+            and self.frames >= self.options.min_frames
+
     def due(self) -> bool:
         """Enough new data for a (new) estimate."""
         o = self.options
-        return (len(self.windows) >= o.min_windows and self.frames >= o.min_frames
+        return (self.has_data()
                 and self._since_estimate >= (o.min_windows if self._grid_interval_s is None
                                              else o.reestimate_every))  # fmt: skip
 

@@ -355,8 +355,7 @@ class OdometryPipeline:
         Not kept (False) when no refinement keeps frames, or for an image unlike the kept
         ones (not uint8 gray, another size) or a stamp not after the last kept one."""
         frames = self._refine_frames
-        if frames is None or self._rerunning or gray is None or gray.ndim != 2 \
-                or gray.dtype != np.uint8 or gray.size == 0:  # fmt: skip
+        if frames is None or self._rerunning or not _is_gray(gray):
             return False
         if frames and (gray.shape != frames[-1][1].shape or stamp_ns <= frames[-1][0]):
             return False
@@ -379,7 +378,7 @@ class OdometryPipeline:
             res.time_ms = (time.perf_counter() - t0) * 1e3
             return res
 
-        if gray is None or gray.ndim != 2 or gray.dtype != np.uint8 or gray.size == 0:
+        if not _is_gray(gray):
             return result("skipped", "not a non-empty uint8 gray image")
         jump = self._time_jump(stamp_ns)
         if jump == "reset":
@@ -510,8 +509,7 @@ class OdometryPipeline:
             return
         e, cal = self.line_delay_estimate, self.calibrator
         ready = (e.status in ("estimated", "converged") and bool(e.line_delay_s)) or (
-            cal is not None and len(cal.windows) >= cal.options.min_windows
-            and cal.frames >= cal.options.min_frames)  # fmt: skip
+            cal is not None and cal.has_data())
         if not ready:
             if len(frames) >= 2 * n:
                 self._refine_frames = None
@@ -772,6 +770,11 @@ class OdometryPipeline:
                       keyframe=out.keyframe, velocity=velocity,
                       mapping_ms=out.ba.time_ms if out.ba is not None else 0.0,
                       refound=out.refound)  # fmt: skip
+
+
+def _is_gray(gray: np.ndarray | None) -> bool:
+    """A frame the pipeline takes: a non-empty 2-D uint8 image."""
+    return gray is not None and gray.ndim == 2 and gray.dtype == np.uint8 and gray.size > 0
 
 
 def refine_pass(K: np.ndarray, D: LensModel | None, line_delay: float,
