@@ -459,7 +459,7 @@ class RsvoNode(Node):
             try:
                 gray = image_to_gray(msg)
             except ValueError:
-                continue  # a bad image is counted when processed, not here
+                continue  # not kept; it stays counted as dropped (it was never processed)
             with self._pipeline_lock:
                 if self.pipeline is not None \
                         and self.pipeline.keep_unprocessed(stamp_ns(msg.header), gray):
