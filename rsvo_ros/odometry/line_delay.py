@@ -53,7 +53,12 @@ class LineDelayOptions:
     min_rotation_rad_s: float = 0.05  # median keyframe |w| below this: not enough motion
     prior_w_rad_s: float = 0.02  # the velocities held to the trajectory's (tight)
     prior_v_rel: float = 0.02
-    iterations: int = 10  # BA iterations per candidate
+    # BA iterations per candidate; with warm_start each candidate's solve starts from the
+    # previous (smaller) candidate's solution, else from the window's own state: 4 warm
+    # iterations give 10 cold ones' estimate to a median 7e-5 of it (at most 1.2 %) on 62
+    # windows' sets in 0.43x the time (README, "The calibrator's re-solves, warm-started")
+    iterations: int = 4
+    warm_start: bool = True
     # tracked frames each side of a keyframe whose cubic spline gives its velocity (0: the
     # central difference over the two neighbouring frames)
     spline_half_width: int = 3
@@ -239,14 +244,17 @@ class LineDelayCalibrator:
         held[:, 12:] = True
         col, n_cols = free_columns(held)
         out = np.empty(len(taus))
+        R, p, rho = pr.R, pr.p, pr.rho  # where each candidate's solve starts
         for i, tau in enumerate(taus):
             q = WindowProblem(
-                pr.R, pr.p, mu[:, :3].copy(), mu[:, 3:].copy(), np.zeros_like(pr.acc),
+                R, p, mu[:, :3].copy(), mu[:, 3:].copy(), np.zeros_like(pr.acc),
                 pr.obs_kf, pr.obs_lm, pr.obs_x, win.obs_rows * tau, pr.lm_anchor, pr.lm_x,
-                win.lm_rows * tau, pr.rho, pr.focal, pr.robust_px, mu, p2, 0.0, col,
+                win.lm_rows * tau, rho, pr.focal, pr.robust_px, mu, p2, 0.0, col,
                 n_cols)  # fmt: skip
             sol = solve_window(q, o.iterations)
             out[i] = sol.cost if np.isfinite(sol.cost) else np.inf
+            if o.warm_start and np.isfinite(sol.cost):  # the next candidate starts here
+                R, p, rho = sol.R, sol.p, sol.rho
         return out
 
     def estimate(self, frame_interval_s: float) -> LineDelayEstimate:

@@ -41,7 +41,7 @@ from rsvo_ros.odometry.pairwise import (
     UNCERTAIN_PAIR_ROTATION_DEG,
     PairwiseChain,
 )
-from rsvo_ros.odometry.refine_worker import RefineJob
+from rsvo_ros.odometry.refine_worker import RefineJob, lower_thread_priority
 from rsvo_ros.odometry.relocalize import describe
 from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
 from rsvo_ros.odometry.twist import Twist, TwistEstimator
@@ -467,6 +467,10 @@ class OdometryPipeline:
         interval = (self.frame_interval_ns or 0.0) * 1e-9
         if o.window.async_mapping:
             def run():
+                # as background work: the tracking and the mapping go first (what it still
+                # costs them is the CPU it takes: README, "The calibrator's re-solves,
+                # warm-started")
+                lower_thread_priority()
                 self._calibration_result = cal.estimate(interval)
 
             self._calibration_thread = threading.Thread(target=run, name="rsvo_line_delay",

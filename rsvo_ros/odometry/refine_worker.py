@@ -14,6 +14,7 @@ estimate"); niced from its start, so that its imports take only what the trackin
 from __future__ import annotations
 
 import dataclasses
+import os
 import pickle
 import shutil
 import subprocess
@@ -23,6 +24,30 @@ import threading
 from pathlib import Path
 
 from rsvo_ros.odometry.line_delay import LineDelayEstimate, RefinedLineDelay
+
+LOWEST_PRIORITY = 19  # nice value of the background work (the refinement, the calibrator)
+
+
+def lower_thread_priority(niceness: int = LOWEST_PRIORITY) -> bool:
+    """Run the calling thread as background work: Linux's idle scheduling class
+    (``SCHED_IDLE``: it runs only on a core nothing else wants, and gives the core up at
+    once when another thread wakes) and ``niceness``. Linux schedules threads one by one:
+    the process's other threads keep theirs; threads started later by this one inherit it.
+    For work that must not take the CPU from the tracking: the line-delay refinement's
+    process and the calibrator's estimates on their thread. It does not make the work free:
+    on a 2-core VM an idle-class busy loop still cost the node 3-6 % of its frames (README,
+    "The calibrator's re-solves, warm-started"). False where the system has neither (then
+    the thread runs as before)."""
+    done = False
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid),
+                                                 niceness))  # fmt: skip
+        done = True
+        os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        pass
+    return done
 
 
 class RefineJob:
@@ -52,7 +77,8 @@ class RefineJob:
             with self._lock:
                 if self._cancelled:
                     return
-                self._proc = subprocess.Popen(([nice, "-n", "19"] if nice else []) + cmd,
+                self._proc = subprocess.Popen(([nice, "-n", str(LOWEST_PRIORITY)] if nice
+                                               else []) + cmd,
                                               stdout=subprocess.DEVNULL,
                                               stderr=subprocess.PIPE)  # fmt: skip
         except (OSError, pickle.PicklingError) as exc:
@@ -108,6 +134,7 @@ class RefineJob:
 def main(argv: list[str] | None = None) -> int:
     """``python -m rsvo_ros.odometry.refine_worker IN OUT``:
     ``refine_from_estimate(*pickle(IN))``, its results' fields pickled to OUT."""
+    lower_thread_priority()  # the process started niced; idle too, before the imports
     from rsvo_ros.odometry.pipeline import refine_from_estimate
 
     src, dst = (argv if argv is not None else sys.argv[1:])[:2]

@@ -108,11 +108,12 @@ PARAMETERS = {
         "live camera; rsvo_replay does it unless --no-line-delay-rerun (the frames before the "
         "first estimate otherwise keep the map and scale the starting readout gave them).")),
     "line_delay_refine_frames": (150, _int(
-        "line_delay_mode auto: after this many frames, run them again at the estimate in the "
-        "background with the map's shear removed and take the refined line delay "
-        "(status refined; as rsvo_calibrate's second pass, over these frames; they are kept as "
-        "images until then, 138 MB at 1280x720; in a process of its own at the lowest CPU "
-        "priority; only for frames at 25 Hz or faster). 0: keep the calibrator's estimate.",
+        "line_delay_mode auto: after this many frames, run them again (the dropped ones too) "
+        "at the calibrator's estimate over all its windows, in the background with the map's "
+        "shear removed, and take the refined line delay (status refined; as rsvo_calibrate's "
+        "second pass, over these frames; they are kept as images until then, 138 MB at "
+        "1280x720; in a process of its own at the lowest CPU priority; only for frames at 25 "
+        "Hz or faster). 0: keep the calibrator's estimate.",
         0, 100000)),
     "line_delay_save_file": ("", _str(
         "line_delay_mode auto: write the estimate to this ROS 2 parameter file when it "

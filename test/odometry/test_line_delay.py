@@ -4,6 +4,8 @@ readout with the velocities held to the trajectory)."""
 from __future__ import annotations
 
 import dataclasses
+import os
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -23,7 +25,7 @@ from rsvo_ros.odometry.pipeline import (
     refine_from_estimate,
     refine_pass,
 )
-from rsvo_ros.odometry.refine_worker import RefineJob
+from rsvo_ros.odometry.refine_worker import RefineJob, lower_thread_priority
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import accuracy
 
@@ -211,6 +213,28 @@ def test_the_re_solves_hold_the_accelerations(auto_50):
     taus = np.array([0.0, 2e-5, 5e-5, 8e-5])
     trajectory = cal._trajectory()
     assert np.allclose(cal._costs(win, taus, trajectory), cal._costs(as_held, taus, trajectory))
+
+
+def test_warm_started_re_solves_give_the_cold_ones_estimate(auto_50):
+    """The grid's re-solves start each from the previous candidate's solution, 4 iterations
+    (the default): the estimate of 10 iterations from the window's own state each, to 1 %, and
+    every window's cost curve to 5 % of its range."""
+    pipe, _ = auto_50
+    cal = pipe.calibrator
+    assert LineDelayOptions().warm_start and LineDelayOptions().iterations < 10
+
+    def estimate(**changes):
+        again = LineDelayCalibrator(cal.height, dataclasses.replace(cal.options, **changes))
+        again.windows = [dataclasses.replace(w, costs=None) for w in cal.windows]
+        again.frames, again._poses = cal.frames, cal._poses
+        return again.estimate(1 / 30), again.windows
+
+    (warm, warm_windows), (cold, cold_windows) = estimate(), estimate(iterations=10,
+                                                                      warm_start=False)
+    assert warm.status == cold.status in ("estimated", "converged") and cold.line_delay_s > 0
+    assert abs(warm.line_delay_s - cold.line_delay_s) <= 0.01 * cold.line_delay_s
+    for a, b in zip(warm_windows, cold_windows, strict=True):
+        assert np.abs(a.costs - b.costs).max() <= 0.05 * np.ptp(b.costs)
 
 
 def test_the_frames_before_the_first_estimate_run_again_with_it():
@@ -543,3 +567,49 @@ def test_a_refinement_process_that_fails_says_why():
     assert live.line_delay == 5e-5 and live.line_delay_estimate.status == "estimated"
     assert job._proc is not None and job._proc.poll() is not None  # stopped
     assert not job._dir.exists()
+
+
+def _priority(tid: int) -> tuple[int, int]:
+    return os.getpriority(os.PRIO_PROCESS, tid), os.sched_getscheduler(tid)
+
+
+def test_the_calibrators_estimates_run_as_background_work():
+    """With async mapping (the node) the calibrator estimates on a thread of Linux's idle
+    class at nice 19: it runs only on a core the tracking and the mapping leave (at normal
+    priority it cost the node frames); the tracking's thread keeps its priority."""
+    main_before = _priority(threading.get_native_id())
+    seen = {}
+
+    def estimate(interval):
+        seen["priority"] = _priority(threading.get_native_id())
+        seen["thread"] = threading.current_thread().name
+        return LineDelayEstimate("collecting", reason="test")
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]])
+    options = PipelineOptions(line_delay_auto=True)
+    options.window.async_mapping = True
+    pipe = OdometryPipeline(K, None, 0.0, options)
+    pipe.calibrator = SimpleNamespace(add_frame=lambda: None, due=lambda: True,
+                                      estimate=estimate)
+    pipe._calibrate(1, 360)
+    pipe._calibration_thread.join(30.0)
+    pipe.close()
+    assert seen["thread"] == "rsvo_line_delay"
+    assert seen["priority"] == (19, os.SCHED_IDLE), seen
+    assert _priority(threading.get_native_id()) == main_before
+    assert main_before[1] != os.SCHED_IDLE
+    # the helper itself: only the calling thread, never back up (a thread already lower
+    # stays there)
+    out = {}
+
+    def lowered():
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, 5)
+        out["first"] = (lower_thread_priority(10), _priority(tid))
+        out["second"] = (lower_thread_priority(3), _priority(tid))
+
+    t = threading.Thread(target=lowered)
+    t.start()
+    t.join()
+    assert out["first"] == (True, (10, os.SCHED_IDLE))
+    assert out["second"] == (True, (10, os.SCHED_IDLE))
