@@ -2,7 +2,8 @@
 priority (``PipelineOptions.line_delay_auto_refine_frames`` with async mapping: the node).
 
 The pipeline writes the kept frames, its options and its line-delay calibrator's windows to a
-file (:class:`RefineJob`), a ``nice -n 19`` Python runs
+file (:class:`RefineJob`), a ``nice -n 19`` Python (in the idle scheduling class too once it
+runs: :func:`lower_thread_priority`) runs
 :func:`~rsvo_ros.odometry.pipeline.refine_from_estimate` on them (an estimate over all the
 windows, then the second pass; ``python -m rsvo_ros.odometry.refine_worker IN OUT``) and
 writes its results; the pipeline polls
