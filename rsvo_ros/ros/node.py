@@ -325,6 +325,7 @@ class RsvoNode(Node):
                                readout=self.p["readout_direction"],
                                tracker=TrackerOptions(
                                    max_features=int(self.p["max_features"]),
+                                   window_px=int(self.p["klt_window_px"]),
                                    refine_window_px=refine_window_or_auto(
                                        int(self.p["klt_refine_window_px"]),
                                        "parameter klt_refine_window_px"),

@@ -42,7 +42,11 @@ from rsvo_ros.odometry.pipeline import (
     warm_up,
 )
 from rsvo_ros.odometry.tracker import (
+    DEFAULT_WINDOW_PX,
     MAX_REFINE_WINDOW_PX,
+    MAX_WINDOW_PX,
+    MIN_WINDOW_PX,
+    check_window,
     refine_window_or_auto,
 )
 from rsvo_ros.odometry.twist import Twist, body_twist
@@ -500,6 +504,7 @@ def replay(cfg: ReplayConfig) -> dict:
                                    if pipeline is not None else None),
         "async_mapping": options.window.async_mapping,
         "angular_acceleration_std": options.window.map.prior_acc_rad_s2,
+        "klt_window_px": options.tracker.window_px,  # the pyramid's KLT window (px)
         # the tracker's small-window refinement in use (px; 0: off)
         "klt_refine_window_px": (pipeline.tracker.refine_window_px if pipeline is not None
                                  else None),
@@ -1083,9 +1088,13 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="NAME=VALUE",
                    help="window backend: set a numeric WindowOptions field, e.g. "
                         "init_max_rotation_std_deg=0 (repeatable; for A/B runs)")
+    p.add_argument("--klt-window", type=int, default=DEFAULT_WINDOW_PX, metavar="PX",
+                   help=f"KLT: the pyramid's window (default {DEFAULT_WINDOW_PX}; "
+                        f"{MIN_WINDOW_PX}-{MAX_WINDOW_PX}): its time grows with its area (17: "
+                        "0.45-0.63x the time of 21; README)")
     p.add_argument("--klt-refine-window", type=int, default=-1, metavar="PX",
                    help="KLT: polish each track at full resolution with a PX window after the "
-                        "pyramid's 21-px one (-1, default: 11 for the window backend, off for "
+                        "pyramid's (-1, default: 11 for the window backend, off for "
                         f"the pairwise one; 0: off; else 3-{MAX_REFINE_WINDOW_PX})")
     p.add_argument("--no-photometric-compensation", action="store_true",
                    help="KLT: do not map an image whose brightness changed (auto exposure) into "
@@ -1118,6 +1127,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         refine_window = refine_window_or_auto(args.klt_refine_window, "--klt-refine-window")
+        check_window(args.klt_window, "--klt-window")
         uncertain = uncertain_rotation_or_auto(args.uncertain_rotation, "--uncertain-rotation")
     except ValueError as exc:
         print(f"rsvo_replay: {exc}", file=sys.stderr)
@@ -1155,6 +1165,7 @@ def main(argv: list[str] | None = None) -> int:
     options.rotation_only_parallax_px = args.rotation_only_parallax
     options.uncertain_rotation_deg = uncertain
     options.tracker.photometric_compensation = not args.no_photometric_compensation
+    options.tracker.window_px = args.klt_window
     set_window_options(options, args.window_option)
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
                        args.camera_info_topic, args.ground_truth_topic,

@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
 
+from rsvo_ros.odometry.tracker import DEFAULT_WINDOW_PX
 from rsvo_ros.ros.node import STARTUP_ERRORS, RsvoNode
 from rsvo_ros.ros.params import (
     DEFAULTS_FILE,
@@ -273,6 +274,23 @@ def test_a_binned_cameras_full_resolution_info_gives_the_same_odometry(ros_conte
         finally:
             h.close()
     assert np.array_equal(poses[0], poses[1])
+
+
+def test_the_klt_windows_reach_the_tracker(ros_context):
+    """klt_window_px and klt_refine_window_px set the pipeline's tracker (defaults: 21 and the
+    window backend's 11); a 13-px pyramid window tracks the frames as well."""
+    info, msgs = _frames(4)
+    for params, want in (([], (DEFAULT_WINDOW_PX, 11)),
+                         ([Parameter("klt_window_px", value=13),
+                           Parameter("klt_refine_window_px", value=7)], (13, 7))):
+        h = Harness(ros_context, [Parameter("model", value="gs"), *params])
+        try:
+            h.feed(info, msgs)
+            tracker = h.node.pipeline.tracker
+            assert (tracker.options.window_px, tracker.refine_window_px) == want
+            assert h.node.stats["bad"] == 0 and len(h.odom) == 4
+        finally:
+            h.close()
 
 
 def test_an_uncalibrated_camera_info_is_refused_or_assumed_as_asked(ros_context):
@@ -798,6 +816,8 @@ def test_every_invalid_parameter_is_refused_by_name(tmp_path):
     cases = ((["model:=fisheye"], "model"),
              (["max_features:=3"], "max_features"),
              (["klt_refine_window_px:=2"], "klt_refine_window_px"),
+             (["klt_window_px:=3"], "klt_window_px"),
+             (["klt_window_px:=99"], "klt_window_px"),
              (["uncertain_rotation_deg:=-0.5"], "uncertain_rotation_deg"),
              (["line_delay:=-1.0"], "line_delay"),
              (["base_to_camera:=[0.0, 0.0]"], "base_to_camera"),

@@ -16,6 +16,7 @@ from rsvo_ros.odometry.pairwise import (
     BOOTSTRAP_UNCERTAIN_ROTATION_DEG,
     UNCERTAIN_PAIR_ROTATION_DEG,
 )
+from rsvo_ros.odometry.tracker import DEFAULT_WINDOW_PX
 from rsvo_ros.ros import bagio
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import main as replay_main
@@ -912,6 +913,15 @@ def test_klt_refine_window_flag_reaches_the_tracker_and_is_checked(vehicle_bag, 
     traj = {n: (tmp_path / n / "trajectory.tum").read_text() for n in ("default", "off")}
     assert traj["default"] != traj["off"]  # the refinement moved the tracks
     _rejected(vehicle_bag, tmp_path, capsys, "--klt-refine-window", ("2", "99", "-3"))
+
+
+def test_klt_window_flag_reaches_the_tracker_and_is_checked(vehicle_bag, tmp_path, capsys):
+    runs = {"default": [], "narrow": ["--klt-window", "17"]}
+    used = _summary_fields(vehicle_bag, tmp_path, runs, "klt_window_px", 4)
+    assert used == {"default": DEFAULT_WINDOW_PX, "narrow": 17}
+    traj = {n: (tmp_path / n / "trajectory.tum").read_text() for n in runs}
+    assert traj["default"] != traj["narrow"]  # the window moved the tracks
+    _rejected(vehicle_bag, tmp_path, capsys, "--klt-window", ("4", "52", "-1"))
 
 
 def test_readout_direction_flag_reaches_the_pipeline_and_is_checked(vehicle_bag, tmp_path,
