@@ -64,6 +64,48 @@ def test_rs_model_on_real_pairs_is_as_good_as_the_gs_pipeline(real_report):
     assert two["unroll_px_median"] <= two["nothing_px_median"] + 1e-9
 
 
+@pytest.fixture(scope="module")
+def real_tracks() -> dict:
+    return {pair.name: realpairs.prepare(pair) for pair in realpairs.load_pairs(REAL)}
+
+
+def _rotation_errors(tracks, method: str, seeds) -> list[float]:
+    return [realpairs.evaluate_pair(tracks, seed=seed, methods=(method,))[0].rot_err_deg
+            for seed in seeds]
+
+
+def test_stream_mode_equals_the_gs_pipeline_on_every_real_pair_and_seed(real_tracks):
+    """The product's mode (a video stream) keeps the GS pose on all four pairs whatever the
+    seed. (Two-view mode does not: on pair_3 the held-out test is marginal and odd seeds
+    take an RS fit 2.2 deg off; README, "Real pairs".)"""
+    for name, tracks in real_tracks.items():
+        gs = _rotation_errors(tracks, "OpenCV USAC_MAGSAC (GS)", [0])[0]
+        for err in _rotation_errors(tracks, "ours rs, stream", range(4)):
+            assert err <= gs + 0.05, name
+
+
+@pytest.mark.parametrize("window_px", [13, 17, 19])
+def test_a_tolerant_start_near_the_local_scale_is_checked_by_the_best_gs_fit(monkeypatch,
+                                                                             window_px):
+    """pair_3 tracked with a 13-, 17- or 19-px KLT window: the tolerant GS start leaves a
+    robust scale of 1.6-2.4 px, the best GS fit (MAGSAC) 0.72-0.74. The search took the first
+    for strong RS distortion and went global, to RS fits 5.2-5.4 deg off in stream mode;
+    checked by the best GS fit (estimator.LOCAL_CHECK_FACTOR) it stays local and keeps the
+    GS pose. Without the check the failure comes back."""
+    from functools import partial
+
+    from rsvo_ros.odometry.tracker import TrackerOptions
+    from rsvo_ros.twoview import estimator
+
+    monkeypatch.setattr(realpairs, "TrackerOptions",
+                        partial(TrackerOptions, window_px=window_px))
+    tracks = realpairs.prepare(realpairs.load_pairs(REAL)[3])
+    gs = _rotation_errors(tracks, "OpenCV USAC_MAGSAC (GS)", [0])[0]
+    assert max(_rotation_errors(tracks, "ours rs, stream", range(2))) <= gs + 0.05
+    monkeypatch.setattr(estimator, "LOCAL_CHECK_FACTOR", 1.0)
+    assert min(_rotation_errors(tracks, "ours rs, stream", range(2))) > gs + 2.0
+
+
 def test_stream_velocities_unroll_real_frames_with_the_right_readout():
     pair = realpairs.load_pairs(REAL)[1]
     tracks = realpairs.prepare(pair)
