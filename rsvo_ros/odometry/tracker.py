@@ -59,7 +59,8 @@ def check_refine_window(px: int | None, name: str = "refine_window_px",
 def check_window(px: int, name: str = "window_px") -> None:
     """``ValueError`` unless ``px`` is a pyramid KLT window of ``MIN_WINDOW_PX``-``MAX_WINDOW_PX``
     px; the message names the setting ``name``."""
-    if isinstance(px, bool) or int(px) != px or not MIN_WINDOW_PX <= px <= MAX_WINDOW_PX:
+    if (isinstance(px, bool) or not isinstance(px, int | np.integer)
+            or not MIN_WINDOW_PX <= px <= MAX_WINDOW_PX):
         raise ValueError(f"{name} must be {MIN_WINDOW_PX}-{MAX_WINDOW_PX} px, got {px}")
 
 

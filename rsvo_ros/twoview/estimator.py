@@ -299,13 +299,14 @@ def estimate_relative_pose(
                                                         ransac.confidence,
                                                         ransac.null_max_iterations, seed,
                                                         GS_METHOD)
-            best = (RSBatch.from_pose(R_g, t_g)
-                    if mask_g.sum() >= min_inliers and np.linalg.norm(t_g) > 0 else None)
-            if best is not None and (start_scale < lm.local_scale_px or data_scale(
-                    best, corr, np.inf) < lm.local_scale_px):  # fmt: skip
-                if start_scale >= lm.local_scale_px and more_starts is not None:
-                    more_starts.cancel()  # local after all (search_fast decides by its scale)
-                null_start = best
+            if mask_g.sum() >= min_inliers and np.linalg.norm(t_g) > 0:
+                best = RSBatch.from_pose(R_g, t_g)
+                if start_scale < lm.local_scale_px:
+                    null_start = best
+                elif data_scale(best, corr, np.inf) < lm.local_scale_px:
+                    null_start = best  # local after all (search_fast decides by its scale)
+                    if more_starts is not None:
+                        more_starts.cancel()
     if mode == "paper":
         found = search_paper(corr, start, ransac.rs_iterations, ransac.rs_sample_size,
                              ransac.threshold_px, lm, rng)

@@ -201,7 +201,7 @@ def test_a_refinement_that_would_jump_keeps_the_pyramids_position(textured):
     for bad in (1, 2, 99, -1):
         with pytest.raises(ValueError, match="refine_window_px"):
             FeatureTracker(TrackerOptions(refine_window_px=bad))
-    for bad in (4, 52, 0, 17.5, True):
+    for bad in (4, 52, 0, 17.5, True, None, float("nan"), "17"):
         with pytest.raises(ValueError, match="window_px must be 5-51"):
             FeatureTracker(TrackerOptions(window_px=bad))
 
