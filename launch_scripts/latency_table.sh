@@ -8,8 +8,10 @@
 # RSVO_LATENCY_FRAMES (default 300). RSVO_LATENCY_DDS_PROFILES lists the Fast DDS profiles to
 # run the node and the probe (the camera) with, each row with each in turn: "default" (Fast
 # DDS's own defaults; the default) and "large_images" (the shipped profile, python -m
-# rsvo_ros.ros.dds; README "Large images over DDS"), e.g. "default large_images". About 8
-# minutes per profile; run it on an otherwise idle machine.
+# rsvo_ros.ros.dds; README "Large images over DDS"), e.g. "default large_images".
+# RSVO_LATENCY_DECIMATIONS lists the node's tracking_decimation values to run each row with
+# (default "1"; e.g. "1 2": README "Tracking at a reduced resolution"). About 8 minutes per
+# profile and decimation; run it on an otherwise idle machine.
 set -euo pipefail
 REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
@@ -18,6 +20,14 @@ source "$REPO_ROOT/launch_scripts/ros_env.sh"
 OUT="${RSVO_LATENCY_OUTPUT:-$REPO_ROOT/results/latency}"
 FRAMES="${RSVO_LATENCY_FRAMES:-300}"
 PROFILES="${RSVO_LATENCY_DDS_PROFILES:-default}"
+DECIMATIONS="${RSVO_LATENCY_DECIMATIONS:-1}"
+for decimation in $DECIMATIONS; do
+    case "$decimation" in
+        1 | 2 | 3 | 4) ;;
+        *) echo "RSVO_LATENCY_DECIMATIONS takes 1-4, got $decimation" >&2
+           exit 2 ;;
+    esac
+done
 for profile in $PROFILES; do
     case "$profile" in
         default | large_images) ;;
@@ -40,16 +50,18 @@ for res in 640x480 1280x720; do
             else
                 unset FASTRTPS_DEFAULT_PROFILES_FILE
             fi
-            run="${res}_${rate}hz_${profile}"
-            rsvo_node --ros-args -p line_delay:="$ld" -p image_qos_reliability:=reliable \
-                > "$OUT/node_$run.log" 2>&1 &
-            node_pid=$!
-            python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" \
-                --frames "$FRAMES" --motion walk --node-pid "$node_pid" \
-                --json "$OUT/latency_$run.json"
-            kill -INT "$node_pid"
-            wait "$node_pid" || true
-            results+=("$OUT/latency_$run.json")
+            for decimation in $DECIMATIONS; do
+                run="${res}_${rate}hz_${profile}_d${decimation}"
+                rsvo_node --ros-args -p line_delay:="$ld" -p image_qos_reliability:=reliable \
+                    -p tracking_decimation:="$decimation" > "$OUT/node_$run.log" 2>&1 &
+                node_pid=$!
+                python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" \
+                    --frames "$FRAMES" --motion walk --node-pid "$node_pid" \
+                    --json "$OUT/latency_$run.json"
+                kill -INT "$node_pid"
+                wait "$node_pid" || true
+                results+=("$OUT/latency_$run.json")
+            done
         done
     done
 done

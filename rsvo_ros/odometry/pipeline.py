@@ -60,6 +60,9 @@ BACKENDS = ("window", "pairwise")
 FAULT_RESET_AFTER = 3
 # close(): how long a line-delay refinement still running is waited for
 REFINE_WAIT_S = 300.0
+# with TrackerOptions.decimation, a side of the reduced image under this many pixels is a
+# skipped frame (nothing to track in it)
+MIN_DECIMATED_SIZE_PX = 16
 
 
 @dataclass
@@ -344,6 +347,11 @@ class OdometryPipeline:
         return res
 
     @property
+    def image_size(self) -> tuple[int, int] | None:
+        """(width, height) of the last image processed, None before any."""
+        return self._image_size
+
+    @property
     def wants_unprocessed_frames(self) -> bool:
         """True while the line-delay refinement keeps frames (:meth:`keep_unprocessed`)."""
         return self._refine_frames is not None and not self._rerunning
@@ -380,6 +388,11 @@ class OdometryPipeline:
 
         if not _is_gray(gray):
             return result("skipped", "not a non-empty uint8 gray image")
+        factor = self.tracker.options.decimation
+        if factor > 1 and min(gray.shape) < MIN_DECIMATED_SIZE_PX * factor:
+            return result("skipped", f"a {gray.shape[1]}x{gray.shape[0]} image is too small to "
+                                     f"track at decimation {factor} (under "
+                                     f"{MIN_DECIMATED_SIZE_PX} px a side)")
         jump = self._time_jump(stamp_ns)
         if jump == "reset":
             back = (self._last_stamp - stamp_ns) * 1e-9

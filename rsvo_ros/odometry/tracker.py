@@ -32,6 +32,10 @@ MAX_REFINE_WINDOW_PX = 51
 # (README, "A smaller KLT window: faster, and not kept as the default")
 DEFAULT_WINDOW_PX = 21
 MIN_WINDOW_PX, MAX_WINDOW_PX = 5, 51
+# Tracking at a reduced resolution (rtabmap's Odom/ImageDecimation): each image is averaged
+# down by this integer factor (cv2.INTER_AREA) before detection and KLT, and the tracks are
+# handed on in the full image's pixels, where the camera model and the readout rows live
+MAX_DECIMATION = 4
 # Photometric compensation (auto exposure / gain): the current image's grey levels are mapped
 # into the previous image's before KLT (whose squared differences assume constant brightness)
 # when the tracked points say the brightness changed by more than PHOTOMETRIC_TOLERANCE grey
@@ -62,6 +66,31 @@ def check_window(px: int, name: str = "window_px") -> None:
     if (isinstance(px, bool) or not isinstance(px, int | np.integer)
             or not MIN_WINDOW_PX <= px <= MAX_WINDOW_PX):
         raise ValueError(f"{name} must be {MIN_WINDOW_PX}-{MAX_WINDOW_PX} px, got {px}")
+
+
+def check_decimation(factor: int, name: str = "decimation") -> None:
+    """``ValueError`` unless ``factor`` is a :attr:`TrackerOptions.decimation` (an integer
+    1-``MAX_DECIMATION``); the message names the setting ``name``."""
+    if (isinstance(factor, bool) or not isinstance(factor, int | np.integer)
+            or not 1 <= factor <= MAX_DECIMATION):
+        raise ValueError(f"{name} must be an integer 1-{MAX_DECIMATION} (1: full resolution), "
+                         f"got {factor}")
+
+
+def decimated(img: np.ndarray, factor: int) -> np.ndarray:
+    """``img`` averaged down by ``factor`` (each output pixel the mean of a ``factor`` x
+    ``factor`` block; a remainder of rows or columns is dropped); ``img`` itself for 1."""
+    if factor == 1:
+        return img
+    h, w = img.shape[:2]
+    return cv2.resize(img[:h - h % factor, :w - w % factor], (w // factor, h // factor),
+                      interpolation=cv2.INTER_AREA)
+
+
+def to_full_resolution(pts: np.ndarray, factor: int) -> np.ndarray:
+    """Pixels ``pts`` (n, 2) of an image :func:`decimated` by ``factor`` in the full image's
+    pixels (pixel centres: ``(x + 0.5) factor - 0.5``)."""
+    return pts if factor == 1 else (pts + 0.5) * factor - 0.5
 
 
 def refine_window_or_auto(px: int, name: str) -> int | None:
@@ -100,6 +129,11 @@ class TrackerOptions:
     # map the current image's grey levels into the previous one's (gain and offset fitted on
     # the tracked points) and track again when the brightness changed (auto exposure)
     photometric_compensation: bool = True
+    # track at 1/decimation of the image's resolution (1: full resolution; MAX_DECIMATION):
+    # the windows, distances and thresholds above are then in the reduced image's pixels.
+    # For a live node that cannot keep up with large images (README, "Tracking at a reduced
+    # resolution")
+    decimation: int = 1
 
 
 @dataclass
@@ -132,6 +166,7 @@ class FeatureTracker:
         refine = self.options.refine_window_px
         check_refine_window(refine)
         check_window(self.options.window_px)
+        check_decimation(self.options.decimation)
         self._refine_px = REFINE_WINDOW_PX if refine is None else int(refine)
         self._prev_img: np.ndarray | None = None
         self._pts = np.zeros((0, 2), np.float32)
@@ -164,8 +199,9 @@ class FeatureTracker:
 
     def current(self) -> tuple[np.ndarray, np.ndarray]:
         """Ids (n,) and raw pixels (n, 2) of every feature of the last image (tracked ones and
-        the corners detected in it)."""
-        return self._ids.copy(), self._pts.astype(float)
+        the corners detected in it), in the full image's pixels."""
+        return self._ids.copy(), to_full_resolution(self._pts.astype(float),
+                                                    self.options.decimation)
 
     def track(self, img: np.ndarray, stamp_ns: int | None = None) -> TrackedPair:
         """Track the current features into ``img`` (uint8 gray), then top up by detection.
@@ -173,8 +209,18 @@ class FeatureTracker:
         prediction).
 
         Returns the correspondences that survived KLT and the forward-backward check (empty for
-        the first frame or a changed image size).
+        the first frame or a changed image size), in ``img``'s pixels (also with
+        ``decimation``).
         """
+        factor = self.options.decimation
+        pair = self._track(decimated(img, factor), stamp_ns)
+        if factor > 1:
+            pair.pts_prev = to_full_resolution(pair.pts_prev, factor)
+            pair.pts_curr = to_full_resolution(pair.pts_curr, factor)
+        return pair
+
+    def _track(self, img: np.ndarray, stamp_ns: int | None) -> TrackedPair:
+        """:meth:`track` in the tracking resolution's pixels."""
         o = self.options
         empty = TrackedPair(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64))
         self.last_photometric = None

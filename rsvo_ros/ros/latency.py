@@ -132,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
                # message construction, DDS, and the node's executor
                "image_delay_ms_median": diag.get("image_delay_ms_median"),
                "dds_profile": dds_profile_name(),
+               # the node's tracking_decimation (its diagnostics; 1: full resolution)
+               "tracking_decimation": int(diag.get("tracking_decimation", 1)),
                # which frames got no odometry (dropped while busy, held, lost): a start-up
                # phase shows as the first indices
                "missing_frames": [k for k, s in enumerate(sent) if s not in got],
@@ -158,15 +160,16 @@ def summary_table(rows: list[dict]) -> str:
     issue-14 target the row has and whether it was met."""
     def key(r):
         w, h = (int(x) for x in r["resolution"].split("x"))
-        return (w * h, r["rate_hz"], r.get("dds_profile", "default"))
+        return (w * h, r["rate_hz"], r.get("dds_profile", "default"),
+                r.get("tracking_decimation", 1))
 
     def ms(x):
         return "-" if x is None else f"{x:.0f}"
 
-    lines = ["| resolution | rate | Fast DDS profile | frames with odometry | delay median / p95 "
-             "| image arrival (median) | node CPU | tracking / mapping / publishing (median) "
-             "| dropped / held | target |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| resolution | rate | Fast DDS profile | tracking decimation | frames with odometry "
+             "| delay median / p95 | image arrival (median) | node CPU | tracking / mapping / "
+             "publishing (median) | dropped / held | target |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=key):
         frames = r["odometry"] / max(r["sent"], 1)
         target = TARGETS.get((r["resolution"], float(r["rate_hz"])))
@@ -186,6 +189,7 @@ def summary_table(rows: list[dict]) -> str:
         nf = r.get("node_frames", {})
         lines.append(
             f"| {r['resolution']} | {r['rate_hz']:g} Hz | {r.get('dds_profile', 'default')} | "
+            f"{r.get('tracking_decimation', 1)} | "
             f"{r['odometry']} / {r['sent']} ({100 * frames:.1f} %) | "
             f"{ms(r['latency_ms_median'])} / {ms(r['latency_ms_p95'])} ms | "
             f"{r.get('image_delay_ms_median') or '-'} ms | {ms(cpu)} % | "

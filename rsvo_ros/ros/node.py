@@ -81,6 +81,12 @@ DEFAULT_CAMERA_FRAME = "camera_optical_frame"  # camera_frame '' and images with
 # for 1280x720 mono8 here (README, "Large images over DDS"); under a second, as a later median
 # is a stamp from another clock (a bag's), not a transport
 LARGE_IMAGE_HINT_MS = (8.0, 1000.0)
+# a node tracking at full resolution that has dropped more than this share of the images
+# (after DROP_HINT_MIN_FRAMES), with images at least DROP_HINT_MIN_WIDTH wide, gets a one-time
+# hint at tracking_decimation (README, "Tracking at a reduced resolution")
+DROP_HINT_SHARE = 0.05
+DROP_HINT_MIN_FRAMES = 150
+DROP_HINT_MIN_WIDTH = 960
 # what tf2_ros's broadcasters use: /tf keeps 100, /tf_static is latched for late subscribers
 # relative: in the node's namespace, as the topics (/rsvo/reset in the root namespace)
 RESET_SERVICE = "rsvo/reset"
@@ -135,6 +141,8 @@ class RsvoNode(Node):
         self._image_delay_ms: deque = deque(maxlen=100)
         self._image_bytes = 0
         self._large_image_hinted = False
+        self._image_size: tuple[int, int] | None = None  # (width, height) of raw images
+        self._decimation_hinted = False
         self._proc_ms: deque = deque(maxlen=100)
         self._track_ms: deque = deque(maxlen=100)  # per frame, without the window BA
         self._map_ms: deque = deque(maxlen=100)  # per keyframe: the window BA
@@ -282,6 +290,8 @@ class RsvoNode(Node):
         self._image_delay_ms.append(
             (self.get_clock().now().nanoseconds - stamp_ns(msg.header)) * 1e-6)
         self._image_bytes = len(msg.data)
+        if getattr(msg, "width", 0):  # (a CompressedImage has no size)
+            self._image_size = (int(msg.width), int(msg.height))
         with self._lock:
             self.stats["received"] += 1
             if self._pending is not None:
@@ -326,6 +336,7 @@ class RsvoNode(Node):
                                tracker=TrackerOptions(
                                    max_features=int(self.p["max_features"]),
                                    window_px=int(self.p["klt_window_px"]),
+                                   decimation=int(self.p["tracking_decimation"]),
                                    refine_window_px=refine_window_or_auto(
                                        int(self.p["klt_refine_window_px"]),
                                        "parameter klt_refine_window_px"),
@@ -602,6 +613,7 @@ class RsvoNode(Node):
         arr.status = [st]
         self.pub_diag.publish(arr)
         self._hint_large_images()
+        self._hint_decimation()
 
     def _diagnostic_values(self) -> dict[str, str]:
         """The key-value pairs of /diagnostics."""
@@ -621,6 +633,7 @@ class RsvoNode(Node):
             **{k: str(v) for k, v in self.stats.items()},
             "model": self.p["model"], "line_delay": str(self.p["line_delay"]),
             "readout_direction": self.p["readout_direction"],
+            "tracking_decimation": str(self.p["tracking_decimation"]),
             # the camera's frame id in use ('' : not named yet, camera_frame '' waits for an
             # image); whether the last odometry carried a twist (measured) or none (1e6)
             "camera_frame": self.camera_frame,
@@ -646,6 +659,23 @@ class RsvoNode(Node):
             f"({DEFAULT_SHM_SEGMENT_BYTES // 1024} KB), they leave its fast path. In the "
             f"camera driver's environment: export FASTRTPS_DEFAULT_PROFILES_FILE=$(python -m "
             f"rsvo_ros.ros.dds) (README, 'Large images over DDS')")
+
+    def _hint_decimation(self) -> None:
+        """Once: a node tracking large images at full resolution drops many of them."""
+        received, dropped = self.stats["received"], self.stats["dropped"]
+        if self._decimation_hinted or self.p["tracking_decimation"] != 1 \
+                or received < DROP_HINT_MIN_FRAMES or dropped <= DROP_HINT_SHARE * received:
+            return
+        pipeline = self.pipeline
+        size = self._image_size or (pipeline.image_size if pipeline is not None else None)
+        if size is None or max(size) < DROP_HINT_MIN_WIDTH:
+            return
+        self._decimation_hinted = True
+        self.get_logger().info(
+            f"dropped {dropped} of {received} images ({100.0 * dropped / received:.0f} %): this "
+            f"machine does not keep up with {size[0]}x{size[1]} images at their rate. "
+            f"tracking_decimation:=2 tracks at half the resolution, at 1280x720 in about 0.6x "
+            f"the time (README, 'Tracking at a reduced resolution')")
 
     def _line_delay_diagnostics(self) -> dict[str, str]:
         pipeline = self.pipeline

@@ -33,6 +33,7 @@ from rsvo_ros.odometry.pairwise import (
 from rsvo_ros.odometry.pipeline import BACKENDS
 from rsvo_ros.odometry.tracker import (
     DEFAULT_WINDOW_PX,
+    MAX_DECIMATION,
     MAX_REFINE_WINDOW_PX,
     MAX_WINDOW_PX,
     MIN_WINDOW_PX,
@@ -161,6 +162,12 @@ PARAMETERS = {
         "0.45-0.63x the time of 21 (fewer frames dropped at camera rate) with the same accuracy "
         "on the README's synthetic bags, but turned one real pair's RS estimate 4 deg off "
         "(README).", MIN_WINDOW_PX, MAX_WINDOW_PX)),
+    "tracking_decimation": (1, _int(
+        "Track corners at 1/this of the images' resolution (the images averaged down; "
+        "rtabmap's Odom/ImageDecimation): 1 is full resolution; 2 makes tracking a 1280x720 "
+        "camera about as costly as a 640x360 one, for a machine that cannot keep up with the "
+        "camera at full resolution (frames dropped); the KLT windows and corner distances are "
+        "then in the reduced image's pixels (README).", 1, MAX_DECIMATION)),
     "klt_refine_window_px": (-1, _int(
         "KLT: after the pyramid's window, polish each track at full resolution with a "
         "window of this many px (the window backend's vehicles otherwise shrink by about 2 %/s; "

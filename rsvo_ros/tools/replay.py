@@ -43,9 +43,11 @@ from rsvo_ros.odometry.pipeline import (
 )
 from rsvo_ros.odometry.tracker import (
     DEFAULT_WINDOW_PX,
+    MAX_DECIMATION,
     MAX_REFINE_WINDOW_PX,
     MAX_WINDOW_PX,
     MIN_WINDOW_PX,
+    check_decimation,
     check_window,
     refine_window_or_auto,
 )
@@ -505,6 +507,8 @@ def replay(cfg: ReplayConfig) -> dict:
         "async_mapping": options.window.async_mapping,
         "angular_acceleration_std": options.window.map.prior_acc_rad_s2,
         "klt_window_px": options.tracker.window_px,  # the pyramid's KLT window (px)
+        # tracking at 1/this of the images' resolution (1: full resolution)
+        "tracking_decimation": options.tracker.decimation,
         # the tracker's small-window refinement in use (px; 0: off)
         "klt_refine_window_px": (pipeline.tracker.refine_window_px if pipeline is not None
                                  else None),
@@ -1092,6 +1096,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"KLT: the pyramid's window (default {DEFAULT_WINDOW_PX}; "
                         f"{MIN_WINDOW_PX}-{MAX_WINDOW_PX}): its time grows with its area (17: "
                         "0.45-0.63x the time of 21; README)")
+    p.add_argument("--decimation", type=int, default=1, metavar="D",
+                   help=f"track at 1/D of the images' resolution (1-{MAX_DECIMATION}; default "
+                        "1: full resolution; the tracker's windows and distances are then in "
+                        "the reduced image's pixels): for large images on a slow machine "
+                        "(README, \"Tracking at a reduced resolution\")")
     p.add_argument("--klt-refine-window", type=int, default=-1, metavar="PX",
                    help="KLT: polish each track at full resolution with a PX window after the "
                         "pyramid's (-1, default: 11 for the window backend, off for "
@@ -1128,6 +1137,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         refine_window = refine_window_or_auto(args.klt_refine_window, "--klt-refine-window")
         check_window(args.klt_window, "--klt-window")
+        check_decimation(args.decimation, "--decimation")
         uncertain = uncertain_rotation_or_auto(args.uncertain_rotation, "--uncertain-rotation")
     except ValueError as exc:
         print(f"rsvo_replay: {exc}", file=sys.stderr)
@@ -1166,6 +1176,7 @@ def main(argv: list[str] | None = None) -> int:
     options.uncertain_rotation_deg = uncertain
     options.tracker.photometric_compensation = not args.no_photometric_compensation
     options.tracker.window_px = args.klt_window
+    options.tracker.decimation = args.decimation
     set_window_options(options, args.window_option)
     cfg = ReplayConfig(args.bag, args.output, args.model, args.image_topic,
                        args.camera_info_topic, args.ground_truth_topic,

@@ -206,6 +206,58 @@ def test_a_refinement_that_would_jump_keeps_the_pyramids_position(textured):
             FeatureTracker(TrackerOptions(window_px=bad))
 
 
+def test_decimated_tracking_hands_on_full_resolution_pixels():
+    """With decimation 2 the tracker detects and tracks in the image averaged down to half its
+    size and returns full-resolution pixels: a 6 x 4 px shift of a 640x360 image comes out as
+    6 x 4 px (3 x 2 in the reduced image), with features over the whole image."""
+    image = render_sequence(SynthConfig(frames=1, width=640, height=360))[0].image
+    shifted = np.roll(image, (4, 6), axis=(0, 1))
+    tracker = FeatureTracker(TrackerOptions(max_features=200, grid=(4, 3), decimation=2))
+    tracker.track(image)
+    ids, pts = tracker.current()
+    assert len(ids) > 100 and pts[:, 0].max() > 500 and pts[:, 1].max() > 270
+    pair = tracker.track(shifted)
+    inner = (pair.pts_prev[:, 0] > 20) & (pair.pts_prev[:, 1] > 20)
+    assert inner.sum() > 80
+    flow = pair.pts_curr[inner] - pair.pts_prev[inner]
+    assert np.allclose(np.median(flow, axis=0), [6.0, 4.0], atol=0.1)
+    ids_now, pts_now = tracker.current()
+    now = dict(zip(ids_now.tolist(), pts_now, strict=True))
+    assert all(np.array_equal(now[i], q) for i, q in zip(pair.ids.tolist(), pair.pts_curr,
+                                                          strict=True))
+    for bad in (0, 5, -1, 1.5, True, None, "2"):
+        with pytest.raises(ValueError, match="decimation must be an integer 1-4"):
+            FeatureTracker(TrackerOptions(decimation=bad))
+
+
+def test_the_pipeline_tracks_at_half_resolution_and_skips_too_small_images():
+    """A 640x360 walk tracked at decimation 2 is posed on every frame as well as at full
+    resolution (the camera model and the readout rows stay the full image's; measured: per-frame
+    rotation error 0.263 against 0.258 deg, ATE 0.044 against 0.066 m; with the tracks left in
+    the reduced image's pixels 1.008 deg); an image too small to track at the decimation is a
+    skipped frame that says why, and the next frame is posed."""
+    cfg = SynthConfig(frames=20, motion="walk", severity=1.0, width=640, height=360, seed=3)
+    frames = render_sequence(cfg)
+    errors = {}
+    for factor in (1, 2):
+        pipe = OdometryPipeline(intrinsics(640, 360), None, cfg.tau, PipelineOptions(
+            tracker=TrackerOptions(decimation=factor)))
+        est, gt = {}, {}
+        for k, fr in enumerate(frames):
+            stamp = round(fr.stamp * 1e9)
+            if factor == 2 and k == 10:
+                small = pipe.process(stamp - 1000, np.zeros((30, 40), np.uint8))
+                assert small.status == "skipped" and "too small" in small.reason
+                assert "decimation 2" in small.reason
+            res = pipe.process(stamp, fr.image)
+            assert res.status == ("first" if k == 0 else "posed"), (factor, k, res.reason)
+            est[stamp], gt[stamp] = res.T_world_cam, ground_truth_pose(fr)
+        errors[factor] = accuracy(gt, est)
+    rpe = {f: a["rpe_rot_deg"]["rmse"] for f, a in errors.items()}
+    assert rpe[2] < 1.25 * rpe[1], rpe
+    assert errors[2]["ate_m"]["rmse"] < 2.0 * errors[1]["ate_m"]["rmse"]
+
+
 def _first_step_errors(cfg, frames, **options):
     """Each frame's rotation error against the previous frame, and the direction error of its
     step (row 0 to row 0, in the previous camera), in degrees."""

@@ -13,9 +13,10 @@ def test_frame_counts_come_from_the_nodes_diagnostics():
     assert _frame_counts({}) == {}  # no diagnostics yet
 
 
-def _row(resolution, rate, odometry, p95, cpu=50.0, profile="default"):
+def _row(resolution, rate, odometry, p95, cpu=50.0, profile="default", decimation=None):
+    extra = {} if decimation is None else {"tracking_decimation": decimation}
     return {"rate_hz": rate, "resolution": resolution, "sent": 300, "odometry": odometry,
-            "dds_profile": profile, "image_delay_ms_median": "12.5",
+            **extra, "dds_profile": profile, "image_delay_ms_median": "12.5",
             "latency_ms_median": 20.0, "latency_ms_p95": p95, "node_cpu_percent": cpu,
             "tracking_ms_median": "12.0", "mapping_ms_median": "40.0",
             "publishing_ms_median": "1.0",
@@ -28,8 +29,8 @@ def test_summary_table_sorts_rows_and_judges_each_target():
                            _row("1280x720", 15.0, 290, 61.0, cpu=160.0)])
     lines = table.splitlines()
     assert len(lines) == 2 + 3
-    assert lines[2].startswith("| 640x480 | 10 Hz | default | 300 / 300 (100.0 %) | 20 / 25 ms "
-                               "| 12.5 ms |")
+    assert lines[2].startswith("| 640x480 | 10 Hz | default | 1 | 300 / 300 (100.0 %) | "
+                               "20 / 25 ms | 12.5 ms |")
     assert lines[2].endswith("| - |")  # no target at 640x480 10 Hz
     # 285 of 300 is 95 %: >= 90 % met, p95 70 <= 80 met
     assert ">= 90 % met; p95 <= 80 ms met" in lines[4]
@@ -43,6 +44,17 @@ def test_rows_of_both_dds_profiles_sit_side_by_side():
     lines = table.splitlines()[2:]
     assert [line.split(" | ")[2] for line in lines] == ["default", "default", "large_images"]
     assert "p95 <= 60 ms not met" in lines[1] and "p95 <= 60 ms met" in lines[2]
+
+
+def test_rows_of_each_tracking_decimation_sit_side_by_side():
+    """Runs of the node at full resolution (rows without the field: before it existed) and at
+    tracking_decimation 2, each judged against the same target."""
+    table = summary_table([_row("1280x720", 30.0, 291, 56.0, decimation=2),
+                           _row("1280x720", 30.0, 220, 130.0)])
+    lines = table.splitlines()[2:]
+    assert [line.split(" | ")[3] for line in lines] == ["1", "2"]
+    assert ">= 90 % not met; p95 <= 80 ms not met" in lines[0]
+    assert ">= 90 % met; p95 <= 80 ms met" in lines[1]
 
 
 def test_the_probe_names_the_dds_profile_it_runs_with(monkeypatch, tmp_path):

@@ -277,17 +277,20 @@ def test_a_binned_cameras_full_resolution_info_gives_the_same_odometry(ros_conte
 
 
 def test_the_klt_windows_reach_the_tracker(ros_context):
-    """klt_window_px and klt_refine_window_px set the pipeline's tracker (defaults: 21 and the
-    window backend's 11); a 13-px pyramid window tracks the frames as well."""
+    """klt_window_px, klt_refine_window_px and tracking_decimation set the pipeline's tracker
+    (defaults: 21, the window backend's 11, 1); a 13-px pyramid window at half resolution
+    tracks the frames as well."""
     info, msgs = _frames(4)
-    for params, want in (([], (DEFAULT_WINDOW_PX, 11)),
+    for params, want in (([], (DEFAULT_WINDOW_PX, 11, 1)),
                          ([Parameter("klt_window_px", value=13),
-                           Parameter("klt_refine_window_px", value=7)], (13, 7))):
+                           Parameter("klt_refine_window_px", value=7),
+                           Parameter("tracking_decimation", value=2)], (13, 7, 2))):
         h = Harness(ros_context, [Parameter("model", value="gs"), *params])
         try:
             h.feed(info, msgs)
             tracker = h.node.pipeline.tracker
-            assert (tracker.options.window_px, tracker.refine_window_px) == want
+            assert (tracker.options.window_px, tracker.refine_window_px,
+                    tracker.options.decimation) == want
             assert h.node.stats["bad"] == 0 and len(h.odom) == 4
         finally:
             h.close()
@@ -818,6 +821,8 @@ def test_every_invalid_parameter_is_refused_by_name(tmp_path):
              (["klt_refine_window_px:=2"], "klt_refine_window_px"),
              (["klt_window_px:=3"], "klt_window_px"),
              (["klt_window_px:=99"], "klt_window_px"),
+             (["tracking_decimation:=0"], "tracking_decimation"),
+             (["tracking_decimation:=5"], "tracking_decimation"),
              (["uncertain_rotation_deg:=-0.5"], "uncertain_rotation_deg"),
              (["line_delay:=-1.0"], "line_delay"),
              (["base_to_camera:=[0.0, 0.0]"], "base_to_camera"),
@@ -885,6 +890,35 @@ def test_late_large_images_get_one_hint_at_the_dds_profile(ros_context, monkeypa
         if hinted:
             assert "900 KB" in hints[0] and "python -m rsvo_ros.ros.dds" in hints[0]
         assert age_ms <= np.median(h.node._image_delay_ms) < age_ms + 50.0
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize("width,height,decimation,hinted", [(1280, 720, 1, True),
+                                                            (640, 480, 1, False),
+                                                            (1280, 720, 2, False)])
+def test_a_node_that_drops_large_images_gets_one_hint_at_decimation(ros_context, monkeypatch,
+                                                                    width, height,
+                                                                    decimation, hinted):
+    """Large images that the node drops (more than 5 % of 150 or more): one log line naming
+    tracking_decimation; small images, or tracking already decimated: none."""
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("tracking_decimation", value=decimation)])
+    log = _Log()
+    monkeypatch.setattr(h.node, "get_logger", lambda: log)
+    try:
+        m = Image()
+        m.height, m.width, m.encoding, m.step = height, width, "mono8", width
+        m.data = bytes(width * height)
+        for _ in range(200):  # no camera info: the images only pass the callback
+            h.node._on_image(m)
+        h.node.stats["dropped"] = max(h.node.stats["dropped"], 20)  # however fast the worker
+        for _ in range(2):
+            h.node._publish_diagnostics()
+        hints = [t for t in log.infos if "tracking_decimation:=2" in t]
+        assert len(hints) == (1 if hinted else 0), log.infos
+        if hinted:
+            assert f"{width}x{height}" in hints[0] and "of 200 images" in hints[0]
     finally:
         h.close()
 

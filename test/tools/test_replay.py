@@ -924,6 +924,16 @@ def test_klt_window_flag_reaches_the_tracker_and_is_checked(vehicle_bag, tmp_pat
     _rejected(vehicle_bag, tmp_path, capsys, "--klt-window", ("4", "52", "-1"))
 
 
+def test_decimation_flag_reaches_the_tracker_and_is_checked(vehicle_bag, tmp_path, capsys):
+    runs = {"default": [], "half": ["--decimation", "2"]}
+    used = _summary_fields(vehicle_bag, tmp_path, runs, "tracking_decimation", 4)
+    assert used == {"default": 1, "half": 2}
+    traj = {n: (tmp_path / n / "trajectory.tum").read_text() for n in runs}
+    assert traj["default"] != traj["half"]  # tracked in other pixels
+    assert len(traj["half"].splitlines()) == len(traj["default"].splitlines())
+    _rejected(vehicle_bag, tmp_path, capsys, "--decimation", ("0", "5", "-1"))
+
+
 def test_readout_direction_flag_reaches_the_pipeline_and_is_checked(vehicle_bag, tmp_path,
                                                                    capsys):
     runs = {"default": [], "up": ["--readout-direction", "up"],
