@@ -1,0 +1,243 @@
+"""Issue 13's walk targets on fresh hand-held walks: under 3 % of the path, the scale kept.
+
+    python -m rsvo_ros.tools.walk_table OUT --seeds 1600-1615 [--frames 300] [--severity 0.7]
+        [--jobs 2] [--window-option NAME=VALUE ...] [--decimation D]
+
+For each seed a 30 Hz hand-held walk is written (``rsvo_synth --motion walk --severity 0.7
+--frames 300 --seed N``: every walk of 8 s or more stops and looks 40 deg left and right) or
+reused from OUT, and replayed with the defaults (RS model, window backend, the bag's line
+delay), the ``--window-option`` / ``--decimation`` settings on top (for A/B runs). Per walk:
+ATE after Sim(3) and as a share of the true path, the run's Sim(3) scale against its first 60
+frames' (``summary.json`` ``accuracy.scale_drift.ratio``; within 10 % is the target), frames
+with a pose, map re-finds, and the estimate's size against the truth second by second (the
+Sim(3) scale of each second's positions, relative to the first 60 frames': where a walk loses
+or gains its scale). Writes ``walks.md``, ``walks.json`` and ``walk_scale.png`` into OUT.
+Use seeds nobody has tuned on for a verdict: the README says which were looked at.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from rsvo_ros.odometry.pipeline import PipelineOptions
+from rsvo_ros.odometry.tracker import MAX_DECIMATION, check_decimation
+from rsvo_ros.sim.synth import SynthConfig
+from rsvo_ros.tools.compare import read_ground_truth, read_tum
+from rsvo_ros.tools.rate_table import fmt, gmean, run_cases
+from rsvo_ros.tools.replay import (
+    SCALE_CHECK_FRAMES,
+    ReplayConfig,
+    replay,
+    set_window_options,
+    window_option_arg,
+)
+from rsvo_ros.tools.synth_bag import write_bag
+
+PATH_SHARE_TARGET = 0.03  # issue 13: every walk under 3 % of its path
+SCALE_TARGET = 0.10  # ... its whole-run scale within 10 % of its first 60 frames'
+POSED_TARGET = 0.98  # ... a pose or a counted hold for >= 98 % of the frames
+SEGMENT_S = 1.0  # the size-against-truth series: one value per this many seconds
+SEGMENT_MIN_PATH_M = 0.05  # a second in which the truth moved less is left out (a stop)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"1600-1615"``, ``"7"`` or ``"3,5,9-11"`` as a list of seeds; ``ValueError`` otherwise."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        lo, sep, hi = part.strip().partition("-")
+        try:
+            a, b = int(lo), int(hi) if sep else int(lo)
+        except ValueError:
+            raise ValueError(f"--seeds takes seeds and ranges like 1600-1615 or 3,5,9-11, "
+                             f"got {text!r}") from None
+        if a < 0 or b < a:
+            raise ValueError(f"--seeds: {part.strip()!r} is not a range of seeds >= 0")
+        seeds.extend(range(a, b + 1))
+    return list(dict.fromkeys(seeds))
+
+
+def sim3_scale(source: np.ndarray, target: np.ndarray) -> float:
+    """The scale ``s`` of the least-squares similarity ``target ~ s R source + t`` (Umeyama) of
+    (M, 3) positions; nan where ``source`` does not spread."""
+    a, b = source - source.mean(0), target - target.mean(0)
+    var = float((a**2).sum())
+    if not var > 0:
+        return float("nan")
+    U, S, Vt = np.linalg.svd(b.T @ a)
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(U @ Vt))
+    return float((S * d).sum() / var)
+
+
+def size_by_second(stamps_s: np.ndarray, gt_xyz: np.ndarray,
+                   est_xyz: np.ndarray) -> list[tuple[float, float]]:  # fmt: skip
+    """``(t, size)``: for each ``SEGMENT_S`` of the run, the Sim(3) scale of the estimate's
+    positions against the truth's (map units per metre) over the first ``SCALE_CHECK_FRAMES``
+    frames' (1: the start's size; 0.5: the estimate is half as large there). Seconds in which
+    the truth moved less than ``SEGMENT_MIN_PATH_M`` are left out; empty without a start."""
+    t = np.asarray(stamps_s, float)
+    n0 = min(SCALE_CHECK_FRAMES, len(t))
+    if n0 < 3:
+        return []
+    start = sim3_scale(gt_xyz[:n0], est_xyz[:n0])
+    if not np.isfinite(start) or start <= 0:
+        return []
+    out = []
+    for t0 in np.arange(t[0], t[-1], SEGMENT_S):
+        k = (t >= t0) & (t < t0 + SEGMENT_S)
+        if k.sum() < 3:
+            continue
+        path = float(np.linalg.norm(np.diff(gt_xyz[k], axis=0), axis=1).sum())
+        if path < SEGMENT_MIN_PATH_M:
+            continue
+        s = sim3_scale(gt_xyz[k], est_xyz[k])
+        if np.isfinite(s):
+            out.append((float(t0 - t[0]), s / start))
+    return out
+
+
+def run_walk(out: Path, seed: int, frames: int, severity: float,
+             window_options: list[tuple[str, float]], decimation: int) -> dict:  # fmt: skip
+    """Write (or reuse) one walk's bag, replay it and return its row."""
+    bag = out / "bags" / f"walk_sev{severity:g}_{frames}f_seed{seed}"
+    if not (bag / "metadata.yaml").exists():
+        write_bag(bag, SynthConfig(frames=frames, motion="walk", severity=severity, seed=seed),
+                  overwrite=True, progress=False)
+    options = PipelineOptions()
+    set_window_options(options, window_options)
+    options.tracker.decimation = decimation
+    run = out / "replays" / bag.name
+    s = replay(ReplayConfig(bag, run, overwrite=True, progress=False, options=options))
+    acc = s.get("accuracy") or {}
+    gt, est = read_ground_truth(bag), read_tum(run / "trajectory.tum")
+    stamps = [k for k in sorted(est) if k in gt]
+    g = np.array([gt[k][:3, 3] for k in stamps]).reshape(-1, 3)
+    e = np.array([est[k][:3, 3] for k in stamps]).reshape(-1, 3)
+    path = float(np.linalg.norm(np.diff(g, axis=0), axis=1).sum()) if len(g) > 1 else 0.0
+    ate = (acc.get("ate_m") or {}).get("rmse")
+    return {"seed": seed, "frames": s["frames_in"], "posed": s["frames_posed"],
+            "held": s["frames_held"], "path_m": path, "ate_m": ate,
+            "ate_share": None if ate is None or path <= 0 else ate / path,
+            "scale_ratio": (acc.get("scale_drift") or {}).get("ratio"),
+            "rpe_rot_deg": (acc.get("rpe_rot_deg") or {}).get("rmse"),
+            "map_refound": s.get("map_refound", 0),
+            "size_by_second": size_by_second(np.array(stamps) * 1e-9, g, e)}
+
+
+def verdicts(row: dict) -> dict[str, bool | None]:
+    """The row against issue 13's walk targets (None where it cannot be judged)."""
+    share, ratio = row["ate_share"], row["scale_ratio"]
+    return {"path": None if share is None else share < PATH_SHARE_TARGET,
+            "scale": None if ratio is None else abs(ratio - 1.0) <= SCALE_TARGET,
+            "posed": (row["posed"] + row["held"]) >= POSED_TARGET * row["frames"]}
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| seed | ATE | share of the path | scale against the first 60 frames | "
+             "size by second (min / max) | RPE rotation per frame | frames with a pose "
+             "(held) | map re-found |", "|---" * 8 + "|"]
+    for r in rows:
+        sizes = [v for _, v in r["size_by_second"]]
+        lines.append(
+            f"| {r['seed']} | {fmt(r['ate_m'], '.3f')} m | "
+            f"{fmt(None if r['ate_share'] is None else 100 * r['ate_share'], '.1f')} % | "
+            f"{fmt(r['scale_ratio'], '.3f')} | "
+            + (f"{min(sizes):.2f} / {max(sizes):.2f}" if sizes else "-")
+            + f" | {fmt(r['rpe_rot_deg'], '.3f')} deg | {r['posed']} ({r['held']}) of "
+            f"{r['frames']} | {r['map_refound']} |")
+    return "\n".join(lines)
+
+
+def summary(rows: list[dict]) -> str:
+    v = [verdicts(r) for r in rows]
+    n = len(rows)
+
+    def count(key):
+        return f"{sum(x[key] is True for x in v)} of {n}"
+
+    return (f"{n} walks: under {100 * PATH_SHARE_TARGET:g} % of the path on {count('path')}; "
+            f"scale within {100 * SCALE_TARGET:g} % of the first {SCALE_CHECK_FRAMES} frames' on "
+            f"{count('scale')}; a pose or a hold for >= {100 * POSED_TARGET:g} % of the frames "
+            f"on {count('posed')}; ATE {fmt(gmean(r['ate_m'] for r in rows), '.3f')} m in "
+            f"geometric mean")
+
+
+def plot(path: Path, rows: list[dict]) -> None:
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    ax.axhspan(1 - SCALE_TARGET, 1 + SCALE_TARGET, color="0.9", label="within 10 %")
+    for r in rows:
+        if not r["size_by_second"]:
+            continue
+        t, v = np.array(r["size_by_second"]).T
+        bad = verdicts(r)["scale"] is False or verdicts(r)["path"] is False
+        ax.plot(t, v, "-o", ms=3, lw=1.6 if bad else 0.8, alpha=1.0 if bad else 0.5,
+                label=f"seed {r['seed']}" if bad else None)
+    ax.set_yscale("log")
+    plain = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
+    ax.yaxis.set_major_formatter(plain)
+    ax.yaxis.set_minor_locator(matplotlib.ticker.LogLocator(subs=(0.5, 0.7, 1.5, 2.0, 3.0)))
+    ax.yaxis.set_minor_formatter(plain)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("estimate's size against the truth,\nrelative to the first 60 frames")
+    ax.set_title("size second by second (thick: a walk that misses a target)", fontsize=9)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m rsvo_ros.tools.walk_table", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("out", type=Path)
+    p.add_argument("--seeds", default="1600-1615", help="seeds and ranges (1600-1615)")
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--severity", type=float, default=0.7, help="shake (0.7)")
+    p.add_argument("--jobs", type=int, default=1, help="walks replayed side by side (1)")
+    p.add_argument("--window-option", type=window_option_arg, action="append", default=[],
+                   metavar="NAME=VALUE", help="a numeric WindowOptions field (repeatable)")
+    p.add_argument("--decimation", type=int, default=1,
+                   help=f"track at 1/D of the resolution (1-{MAX_DECIMATION}; default 1)")
+    args = p.parse_args(argv)
+    try:
+        seeds = parse_seeds(args.seeds)
+        check_decimation(args.decimation, "--decimation")
+        if args.frames < 2 * SCALE_CHECK_FRAMES:
+            raise ValueError(f"--frames must be at least {2 * SCALE_CHECK_FRAMES} (the scale "
+                             f"check compares the run with its first {SCALE_CHECK_FRAMES})")
+        if args.jobs < 1 or not args.severity >= 0:
+            raise ValueError("--jobs must be at least 1 and --severity at least 0")
+    except ValueError as exc:
+        print(f"walk_table: {exc}", file=sys.stderr)
+        return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    jobs = [(args.out, seed, args.frames, args.severity, args.window_option, args.decimation)
+            for seed in seeds]
+    rows = run_cases(run_walk, jobs, args.jobs, lambda k, n, r: (
+        f"[walk_table {k}/{n}] seed {r['seed']}: ATE {fmt(r['ate_m'], '.3f')} m "
+        f"({fmt(None if r['ate_share'] is None else 100 * r['ate_share'], '.1f')} % of the "
+        f"path), scale {fmt(r['scale_ratio'], '.3f')}"))
+    meta = {"command": "python -m rsvo_ros.tools.walk_table " + " ".join(
+        sys.argv[1:] if argv is None else argv), "rows": rows}
+    (args.out / "walks.json").write_text(json.dumps(meta, indent=1))
+    (args.out / "walks.md").write_text(table(rows) + "\n\n" + summary(rows) + "\n")
+    plot(args.out / "walk_scale.png", rows)
+    print(summary(rows))
+    print(f"wrote {args.out / 'walks.md'}, walks.json, walk_scale.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

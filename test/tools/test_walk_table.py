@@ -1,0 +1,59 @@
+"""The walk table: issue 13's walk targets on fresh hand-held walks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from rsvo_ros.tools.walk_table import main, parse_seeds, sim3_scale, size_by_second
+
+
+def test_seeds_and_ranges_are_parsed_and_bad_ones_refused():
+    assert parse_seeds("1600-1602") == [1600, 1601, 1602]
+    assert parse_seeds("3,5,9-10,5") == [3, 5, 9, 10]
+    assert parse_seeds("7") == [7]
+    for bad in ("x", "5-3", "-1", "1-", ""):
+        with pytest.raises(ValueError, match="--seeds"):
+            parse_seeds(bad)
+
+
+def test_the_size_by_second_follows_an_estimate_that_shrinks():
+    """A walk at 1 m/s whose estimate runs at 10 map units per metre for two seconds and at 5
+    after (seen in another frame, turned and moved): the first two seconds at the start's size,
+    the next two at half of it; a second standing still is left out."""
+    t = np.arange(0, 5.0, 1 / 30)
+    walked = np.minimum(t, 4.0)
+    gt = np.column_stack([walked, 0.1 * np.sin(7 * walked), np.zeros_like(t)])
+    step = np.diff(gt, axis=0, prepend=gt[:1])
+    est = np.cumsum(np.where((t < 2.0)[:, None], 10.0, 5.0) * step, axis=0)
+    est = est @ Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix().T + [4.0, -2.0, 7.0]
+    assert sim3_scale(gt[:60], est[:60]) == pytest.approx(10.0, rel=1e-6)
+    sizes = dict(size_by_second(t, gt, est))
+    assert sorted(sizes) == [0.0, 1.0, 2.0, 3.0]  # 4-5 s: the walker stood still
+    assert sizes[0.0] == pytest.approx(1.0, abs=1e-6)
+    assert sizes[1.0] == pytest.approx(1.0, abs=1e-6)
+    assert sizes[2.0] == pytest.approx(0.5, abs=0.02)
+    assert sizes[3.0] == pytest.approx(0.5, abs=1e-6)
+
+
+def test_the_table_writes_and_replays_a_walk_and_refuses_bad_arguments(tmp_path, capsys):
+    out = tmp_path / "walks"
+    assert main([str(out), "--seeds", "5", "--frames", "120"]) == 0
+    rows = json.loads((out / "walks.json").read_text())["rows"]
+    assert [r["seed"] for r in rows] == [5]
+    r = rows[0]
+    assert r["frames"] == 120 and r["posed"] + r["held"] >= 118
+    assert 0 < r["ate_share"] < 0.2 and 0.5 < r["scale_ratio"] < 2.0
+    assert len(r["size_by_second"]) >= 2 and r["size_by_second"][0][1] == pytest.approx(1.0,
+                                                                                        abs=0.2)
+    assert (out / "walk_scale.png").stat().st_size > 0
+    text = (out / "walks.md").read_text()
+    assert "| 5 |" in text and "1 walks: under 3 % of the path on" in text
+    assert "walks: under 3 % of the path" in capsys.readouterr().out
+    for bad in (["--frames", "100"], ["--seeds", "a-b"], ["--decimation", "5"],
+                ["--jobs", "0"]):
+        assert main([str(tmp_path / "bad"), *bad]) == 2
+        assert "walk_table:" in capsys.readouterr().err
