@@ -164,10 +164,11 @@ PARAMETERS = {
         "(README).", MIN_WINDOW_PX, MAX_WINDOW_PX)),
     "tracking_decimation": (1, _int(
         "Track corners at 1/this of the images' resolution (the images averaged down; "
-        "rtabmap's Odom/ImageDecimation): 1 is full resolution; 2 makes tracking a 1280x720 "
-        "camera about as costly as a 640x360 one, for a machine that cannot keep up with the "
-        "camera at full resolution (frames dropped); the KLT windows and corner distances are "
-        "then in the reduced image's pixels (README).", 1, MAX_DECIMATION)),
+        "rtabmap's Odom/ImageDecimation): 1 is full resolution; 2 tracked a 1280x720 camera in "
+        "0.6x the time, for a machine that cannot keep up with its camera at full resolution "
+        "(frames dropped; less accurate on vehicles and on a real pair); the KLT windows, the "
+        "refinement and the corner distances are then in the reduced image's pixels (README).",
+        1, MAX_DECIMATION)),
     "klt_refine_window_px": (-1, _int(
         "KLT: after the pyramid's window, polish each track at full resolution with a "
         "window of this many px (the window backend's vehicles otherwise shrink by about 2 %/s; "

@@ -172,8 +172,16 @@ def _call(job: tuple) -> dict:
 def run_cases(fn, jobs: list[tuple], processes: int, describe) -> list[dict]:
     """``fn(*job)`` for every job on a pool of ``processes`` (the table tools' cases, each a
     bag written and replayed), in order; ``describe(k, n, row)`` is printed as the k-th of n
-    rows comes in. Returns the rows. (``fn`` at module level: the pool pickles it.)"""
+    rows comes in. Returns the rows. (``fn`` at module level: the pool pickles it.) One
+    process: in this one, no pool (a pool forks this process, and a fork of a process with
+    threads holding locks, a test runner's with ROS and numba threads, can hang)."""
     rows = []
+    if processes == 1:
+        results = (_call((fn, job)) for job in jobs)
+        for k, row in enumerate(results, 1):
+            rows.append(row)
+            print(describe(k, len(jobs), row), flush=True)
+        return rows
     with multiprocessing.Pool(processes) as pool:
         for k, row in enumerate(pool.imap(_call, [(fn, job) for job in jobs]), 1):
             rows.append(row)
