@@ -103,16 +103,23 @@ def size_by_second(stamps_s: np.ndarray, gt_xyz: np.ndarray,
 
 def run_walk(out: Path, seed: int, frames: int, severity: float,
              window_options: list[tuple[str, float]], decimation: int) -> dict:  # fmt: skip
-    """Write (or reuse) one walk's bag, replay it and return its row."""
+    """Write (or reuse) one walk's bag, replay it and return its row (with ``error`` and no
+    figures where the bag cannot be written or replayed: the other walks go on)."""
     bag = out / "bags" / f"walk_sev{severity:g}_{frames}f_seed{seed}"
-    if not (bag / "metadata.yaml").exists():
-        write_bag(bag, SynthConfig(frames=frames, motion="walk", severity=severity, seed=seed),
-                  overwrite=True, progress=False)
-    options = PipelineOptions()
-    set_window_options(options, window_options)
-    options.tracker.decimation = decimation
-    run = out / "replays" / bag.name
-    s = replay(ReplayConfig(bag, run, overwrite=True, progress=False, options=options))
+    try:
+        if not (bag / "metadata.yaml").exists():
+            write_bag(bag, SynthConfig(frames=frames, motion="walk", severity=severity,
+                                       seed=seed), overwrite=True, progress=False)
+        options = PipelineOptions()
+        set_window_options(options, window_options)
+        options.tracker.decimation = decimation
+        run = out / "replays" / bag.name
+        s = replay(ReplayConfig(bag, run, overwrite=True, progress=False, options=options))
+    except Exception as exc:  # noqa: BLE001 - one walk's failure is its row, not the table's
+        return {"seed": seed, "error": f"{type(exc).__name__}: {exc}", "frames": 0, "posed": 0,
+                "held": 0, "path_m": None, "ate_m": None, "ate_share": None,
+                "scale_ratio": None, "rpe_rot_deg": None, "map_refound": 0,
+                "size_by_second": []}
     acc = s.get("accuracy") or {}
     gt, est = read_ground_truth(bag), read_tum(run / "trajectory.tum")
     stamps = [k for k in sorted(est) if k in gt]
@@ -134,7 +141,8 @@ def verdicts(row: dict) -> dict[str, bool | None]:
     share, ratio = row["ate_share"], row["scale_ratio"]
     return {"path": None if share is None else share < PATH_SHARE_TARGET,
             "scale": None if ratio is None else abs(ratio - 1.0) <= SCALE_TARGET,
-            "posed": (row["posed"] + row["held"]) >= POSED_TARGET * row["frames"]}
+            "posed": None if "error" in row
+            else (row["posed"] + row["held"]) >= POSED_TARGET * row["frames"]}
 
 
 def table(rows: list[dict]) -> str:
@@ -142,6 +150,9 @@ def table(rows: list[dict]) -> str:
              "size by second (min / max) | RPE rotation per frame | frames with a pose "
              "(held) | map re-found |", "|---" * 8 + "|"]
     for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['seed']} | not replayed: {r['error']} |" + " |" * 6)
+            continue
         sizes = [v for _, v in r["size_by_second"]]
         lines.append(
             f"| {r['seed']} | {fmt(r['ate_m'], '.3f')} m | "
@@ -160,11 +171,12 @@ def summary(rows: list[dict]) -> str:
     def count(key):
         return f"{sum(x[key] is True for x in v)} of {n}"
 
+    failed = [r["seed"] for r in rows if "error" in r]
     return (f"{n} walks: under {100 * PATH_SHARE_TARGET:g} % of the path on {count('path')}; "
             f"scale within {100 * SCALE_TARGET:g} % of the first {SCALE_CHECK_FRAMES} frames' on "
             f"{count('scale')}; a pose or a hold for >= {100 * POSED_TARGET:g} % of the frames "
             f"on {count('posed')}; ATE {fmt(gmean(r['ate_m'] for r in rows), '.3f')} m in "
-            f"geometric mean")
+            f"geometric mean" + (f"; not replayed: seeds {failed}" if failed else ""))
 
 
 def plot(path: Path, rows: list[dict]) -> None:
@@ -198,6 +210,15 @@ def plot(path: Path, rows: list[dict]) -> None:
     plt.close(fig)
 
 
+def _describe(k: int, n: int, r: dict) -> str:
+    """The progress line of the k-th of n walks."""
+    if "error" in r:
+        return f"[walk_table {k}/{n}] seed {r['seed']}: not replayed: {r['error']}"
+    share = None if r["ate_share"] is None else 100 * r["ate_share"]
+    return (f"[walk_table {k}/{n}] seed {r['seed']}: ATE {fmt(r['ate_m'], '.3f')} m "
+            f"({fmt(share, '.1f')} % of the path), scale {fmt(r['scale_ratio'], '.3f')}")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m rsvo_ros.tools.walk_table", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -225,10 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     jobs = [(args.out, seed, args.frames, args.severity, args.window_option, args.decimation)
             for seed in seeds]
-    rows = run_cases(run_walk, jobs, args.jobs, lambda k, n, r: (
-        f"[walk_table {k}/{n}] seed {r['seed']}: ATE {fmt(r['ate_m'], '.3f')} m "
-        f"({fmt(None if r['ate_share'] is None else 100 * r['ate_share'], '.1f')} % of the "
-        f"path), scale {fmt(r['scale_ratio'], '.3f')}"))
+    rows = run_cases(run_walk, jobs, args.jobs, _describe)
     meta = {"command": "python -m rsvo_ros.tools.walk_table " + " ".join(
         sys.argv[1:] if argv is None else argv), "rows": rows}
     (args.out / "walks.json").write_text(json.dumps(meta, indent=1))
@@ -236,7 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     plot(args.out / "walk_scale.png", rows)
     print(summary(rows))
     print(f"wrote {args.out / 'walks.md'}, walks.json, walk_scale.png")
-    return 0
+    for r in rows:
+        if "error" in r:
+            print(f"walk_table: seed {r['seed']} not replayed: {r['error']}", file=sys.stderr)
+    return 1 if any("error" in r for r in rows) else 0
 
 
 if __name__ == "__main__":

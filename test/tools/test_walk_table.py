@@ -40,19 +40,28 @@ def test_the_size_by_second_follows_an_estimate_that_shrinks():
 
 
 def test_the_table_writes_and_replays_a_walk_and_refuses_bad_arguments(tmp_path, capsys):
+    """One walk written and replayed; a broken bag beside it (its metadata unreadable) is
+    reported in its row, the summary and stderr, the table is written with the other walk,
+    and the tool exits 1; bad arguments exit 2."""
     out = tmp_path / "walks"
-    assert main([str(out), "--seeds", "5", "--frames", "120"]) == 0
-    rows = json.loads((out / "walks.json").read_text())["rows"]
-    assert [r["seed"] for r in rows] == [5]
-    r = rows[0]
-    assert r["frames"] == 120 and r["posed"] + r["held"] >= 118
+    broken = out / "bags" / "walk_sev0.7_120f_seed9"
+    broken.mkdir(parents=True)
+    (broken / "metadata.yaml").write_text("not: [a bag")
+    assert main([str(out), "--seeds", "5,9", "--frames", "120"]) == 1
+    rows = {r["seed"]: r for r in json.loads((out / "walks.json").read_text())["rows"]}
+    r = rows[5]
+    assert "error" not in r and r["frames"] == 120 and r["posed"] + r["held"] >= 118
     assert 0 < r["ate_share"] < 0.2 and 0.5 < r["scale_ratio"] < 2.0
     assert len(r["size_by_second"]) >= 2 and r["size_by_second"][0][1] == pytest.approx(1.0,
                                                                                         abs=0.2)
+    assert "error" in rows[9] and rows[9]["ate_m"] is None
     assert (out / "walk_scale.png").stat().st_size > 0
     text = (out / "walks.md").read_text()
-    assert "| 5 |" in text and "1 walks: under 3 % of the path on" in text
-    assert "walks: under 3 % of the path" in capsys.readouterr().out
+    assert "| 5 |" in text and "| 9 | not replayed:" in text
+    assert "2 walks: under 3 % of the path on " in text and "not replayed: seeds [9]" in text
+    captured = capsys.readouterr()
+    assert "walks: under 3 % of the path" in captured.out
+    assert "seed 9 not replayed" in captured.err
     for bad in (["--frames", "100"], ["--seeds", "a-b"], ["--decimation", "5"],
                 ["--jobs", "0"]):
         assert main([str(tmp_path / "bad"), *bad]) == 2
