@@ -14,6 +14,7 @@ ATE and the RS per-frame rotation error against the frame rate) into OUT.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import multiprocessing
 import sys
@@ -176,14 +177,10 @@ def run_cases(fn, jobs: list[tuple], processes: int, describe) -> list[dict]:
     process: in this one, no pool (a pool forks this process, and a fork of a process with
     threads holding locks, a test runner's with ROS and numba threads, can hang)."""
     rows = []
-    if processes == 1:
-        results = (_call((fn, job)) for job in jobs)
+    calls = [(fn, job) for job in jobs]
+    with contextlib.nullcontext() if processes == 1 else multiprocessing.Pool(processes) as pool:
+        results = map(_call, calls) if pool is None else pool.imap(_call, calls)
         for k, row in enumerate(results, 1):
-            rows.append(row)
-            print(describe(k, len(jobs), row), flush=True)
-        return rows
-    with multiprocessing.Pool(processes) as pool:
-        for k, row in enumerate(pool.imap(_call, [(fn, job) for job in jobs]), 1):
             rows.append(row)
             print(describe(k, len(jobs), row), flush=True)
     return rows

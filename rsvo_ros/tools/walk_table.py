@@ -62,16 +62,15 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def sim3_scale(source: np.ndarray, target: np.ndarray) -> float:
-    """The scale ``s`` of the least-squares similarity ``target ~ s R source + t`` (Umeyama) of
-    (M, 3) positions; nan where ``source`` does not spread."""
-    a, b = source - source.mean(0), target - target.mean(0)
-    var = float((a**2).sum())
-    if not var > 0:
+    """The scale ``s`` of the least-squares similarity ``target ~ s R source + t`` (evo's
+    Umeyama alignment, as the replay's ATE) of (M, 3) positions; nan where ``source`` does not
+    spread."""
+    from evo.core.geometry import GeometryException, umeyama_alignment
+
+    try:
+        return float(umeyama_alignment(source.T, target.T, with_scale=True)[2])
+    except GeometryException:
         return float("nan")
-    U, S, Vt = np.linalg.svd(b.T @ a)
-    d = np.ones(3)
-    d[2] = np.sign(np.linalg.det(U @ Vt))
-    return float((S * d).sum() / var)
 
 
 def size_by_second(stamps_s: np.ndarray, gt_xyz: np.ndarray,
