@@ -10,8 +10,9 @@
 # DDS's own defaults; the default) and "large_images" (the shipped profile, python -m
 # rsvo_ros.ros.dds; README "Large images over DDS"), e.g. "default large_images".
 # RSVO_LATENCY_DECIMATIONS lists the node's tracking_decimation values to run each row with
-# (default "1"; e.g. "1 2": README "Tracking at a reduced resolution"). About 8 minutes per
-# profile and decimation; run it on an otherwise idle machine.
+# (default "1"; e.g. "1 2 auto", auto: tracking_decimation_mode auto from full resolution:
+# README "Tracking at a reduced resolution"). About 8 minutes per profile and decimation; run
+# it on an otherwise idle machine.
 set -euo pipefail
 REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
@@ -23,8 +24,8 @@ PROFILES="${RSVO_LATENCY_DDS_PROFILES:-default}"
 DECIMATIONS="${RSVO_LATENCY_DECIMATIONS:-1}"
 for decimation in $DECIMATIONS; do
     case "$decimation" in
-        1 | 2 | 3 | 4) ;;
-        *) echo "RSVO_LATENCY_DECIMATIONS takes 1-4, got $decimation" >&2
+        1 | 2 | 3 | 4 | auto) ;;
+        *) echo "RSVO_LATENCY_DECIMATIONS takes 1-4 and auto, got $decimation" >&2
            exit 2 ;;
     esac
 done
@@ -52,8 +53,13 @@ for res in 640x480 1280x720; do
             fi
             for decimation in $DECIMATIONS; do
                 run="${res}_${rate}hz_${profile}_d${decimation}"
+                if [ "$decimation" = auto ]; then
+                    mode=(-p tracking_decimation_mode:=auto -p tracking_decimation:=1)
+                else
+                    mode=(-p tracking_decimation:="$decimation")
+                fi
                 rsvo_node --ros-args -p line_delay:="$ld" -p image_qos_reliability:=reliable \
-                    -p tracking_decimation:="$decimation" > "$OUT/node_$run.log" 2>&1 &
+                    "${mode[@]}" > "$OUT/node_$run.log" 2>&1 &
                 node_pid=$!
                 python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" \
                     --frames "$FRAMES" --motion walk --node-pid "$node_pid" \

@@ -36,6 +36,20 @@ MIN_WINDOW_PX, MAX_WINDOW_PX = 5, 51
 # down by this integer factor (cv2.INTER_AREA) before detection and KLT, and the tracks are
 # handed on in the full image's pixels, where the camera model and the readout rows live
 MAX_DECIMATION = 4
+# The live node's automatic decimation (AutoDecimation; node tracking_decimation_mode: auto):
+# after the first AUTO_SETTLE_IMAGES received images (the start-up: the first map), a span of
+# AUTO_SPAN_IMAGES received images of which more than AUTO_DROP_SHARE were dropped, or during
+# which the node was busy processing for more than AUTO_BUSY_SHARE of the time (no headroom:
+# the drops come in the bursts of a look-around or a lost map), steps the decimation up by one,
+# as long as the reduced image's longer side stays at least AUTO_MIN_SIDE_PX (a 640x480 camera
+# stays at full resolution: there KLT's time is per point, not per pixel, and half resolution
+# did not keep up either: README, "Tracking at a reduced resolution"). It never steps back
+# during a run
+AUTO_SETTLE_IMAGES = 30
+AUTO_SPAN_IMAGES = 60
+AUTO_DROP_SHARE = 0.10
+AUTO_BUSY_SHARE = 0.70
+AUTO_MIN_SIDE_PX = 480
 # Photometric compensation (auto exposure / gain): the current image's grey levels are mapped
 # into the previous image's before KLT (whose squared differences assume constant brightness)
 # when the tracked points say the brightness changed by more than PHOTOMETRIC_TOLERANCE grey
@@ -99,6 +113,72 @@ def refine_window_or_auto(px: int, name: str) -> int | None:
     window = None if px == -1 else px
     check_refine_window(window, name, "-1")
     return window
+
+
+@dataclass
+class DecimationStep:
+    """:meth:`AutoDecimation.update`'s decision to track at ``factor`` from now on: ``dropped``
+    of the last ``received`` images were dropped, and processing took ``busy_share`` of the
+    time they spanned."""
+
+    factor: int
+    previous: int
+    received: int
+    dropped: int
+    busy_share: float
+
+    def describe(self) -> str:
+        return (f"dropped {self.dropped} of the last {self.received} images "
+                f"({100.0 * self.dropped / self.received:.0f} %), busy "
+                f"{100.0 * self.busy_share:.0f} % of the time: tracking at 1/{self.factor} of "
+                f"the resolution from now on (was 1/{self.previous})")
+
+
+class AutoDecimation:
+    """When a live node falls behind its camera, track at a lower resolution: fed the node's
+    running counts of received and dropped images and its time spent processing, :meth:`update`
+    steps the decimation up by one after a span of images with too many dropped or too little
+    idle time (``AUTO_*``). Pure bookkeeping; the caller applies a step with
+    :meth:`FeatureTracker.set_decimation`."""
+
+    def __init__(self, start: int = 1, settle: int = AUTO_SETTLE_IMAGES,
+                 span: int = AUTO_SPAN_IMAGES, drop_share: float = AUTO_DROP_SHARE,
+                 busy_share: float = AUTO_BUSY_SHARE,
+                 min_side_px: int = AUTO_MIN_SIDE_PX):  # fmt: skip
+        check_decimation(start, "start")
+        if span < 1 or settle < 0 or not 0.0 <= drop_share < 1.0 or not busy_share > 0.0 \
+                or min_side_px < 1:  # fmt: skip
+            raise ValueError(f"AutoDecimation: span >= 1, settle >= 0, 0 <= drop_share < 1, "
+                             f"busy_share > 0 and min_side_px >= 1, got {span}, {settle}, "
+                             f"{drop_share}, {busy_share}, {min_side_px}")
+        self.factor = start
+        self.settle, self.span, self.drop_share = settle, span, drop_share
+        self.busy_share, self.min_side_px = busy_share, min_side_px
+        # (received, dropped, busy_s, now_s) at the span's start
+        self._mark: tuple[int, int, float, float] | None = None
+
+    def update(self, received: int, dropped: int, busy_s: float, now_s: float,
+               image_size: tuple[int, int] | None) -> DecimationStep | None:
+        """The running counts (images received and dropped since the start), the time spent
+        processing since the start and a monotonic clock (s), and the images' (width,
+        height); a :class:`DecimationStep` when the decimation steps up, else None."""
+        if self._mark is None:
+            if received < self.settle:
+                return None
+            self._mark = (received, dropped, busy_s, now_s)
+        n, d = received - self._mark[0], dropped - self._mark[1]
+        if n < self.span:
+            return None
+        elapsed = now_s - self._mark[3]
+        busy = (busy_s - self._mark[2]) / elapsed if elapsed > 0 else 0.0
+        self._mark = (received, dropped, busy_s, now_s)
+        nxt = self.factor + 1
+        if (d <= self.drop_share * n and busy <= self.busy_share) or nxt > MAX_DECIMATION \
+                or image_size is None or max(image_size) // nxt < self.min_side_px:
+            return None
+        step = DecimationStep(nxt, self.factor, n, d, busy)
+        self.factor = nxt
+        return step
 
 
 @dataclass
@@ -169,6 +249,7 @@ class FeatureTracker:
         check_decimation(self.options.decimation)
         self._refine_px = REFINE_WINDOW_PX if refine is None else int(refine)
         self._prev_img: np.ndarray | None = None
+        self._prev_full: np.ndarray | None = None  # the last image at full resolution
         self._pts = np.zeros((0, 2), np.float32)
         self._ids = np.zeros(0, np.int64)
         self._next_id = 0
@@ -181,7 +262,7 @@ class FeatureTracker:
         self._brightness_rate: tuple[float, float] | None = None  # the last significant change
 
     def reset(self) -> None:
-        self._prev_img = None
+        self._prev_img = self._prev_full = None
         self._pts = np.zeros((0, 2), np.float32)
         self._ids = np.zeros(0, np.int64)
         self._flow = np.zeros((0, 2), np.float32)
@@ -214,10 +295,27 @@ class FeatureTracker:
         """
         factor = self.options.decimation
         pair = self._track(decimated(img, factor), stamp_ns)
+        self._prev_full = img
         if factor > 1:
             pair.pts_prev = to_full_resolution(pair.pts_prev, factor)
             pair.pts_curr = to_full_resolution(pair.pts_curr, factor)
         return pair
+
+    def set_decimation(self, factor: int) -> None:
+        """Track the next images at ``factor`` (:attr:`TrackerOptions.decimation`) without
+        losing a track: the features, their last image motion and the previous image (averaged
+        down again from the full-resolution one) are carried over to the new resolution."""
+        check_decimation(factor)
+        old = self.options.decimation
+        if factor == old:
+            return
+        self.options.decimation = factor
+        if self._prev_full is None:
+            return
+        self._prev_img = decimated(self._prev_full, factor)
+        full = to_full_resolution(self._pts.astype(float), old)
+        self._pts = ((full + 0.5) / factor - 0.5).astype(np.float32)
+        self._flow = (self._flow * np.float32(old / factor)).astype(np.float32)
 
     def _track(self, img: np.ndarray, stamp_ns: int | None) -> TrackedPair:
         """:meth:`track` in the tracking resolution's pixels."""

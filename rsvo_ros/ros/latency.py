@@ -134,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
                "dds_profile": dds_profile_name(),
                # the node's tracking_decimation (its diagnostics; 1: full resolution)
                "tracking_decimation": int(diag.get("tracking_decimation", 1)),
+               # fixed, or auto (then tracking_decimation is where it ended)
+               "tracking_decimation_mode": diag.get("tracking_decimation_mode", "fixed"),
                # which frames got no odometry (dropped while busy, held, lost): a start-up
                # phase shows as the first indices
                "missing_frames": [k for k, s in enumerate(sent) if s not in got],
@@ -155,12 +157,19 @@ TARGETS = {("1280x720", 15.0): (0.98, 60.0), ("1280x720", 30.0): (0.90, 80.0),
 NODE_CPU_TARGET = {("1280x720", 15.0): 150.0}  # % of one core
 
 
+def _decimation(row: dict) -> str:
+    """A row's tracking decimation: the factor, or 'auto (ended at N)'."""
+    d = row.get("tracking_decimation", 1)
+    return f"auto (ended at {d})" if row.get("tracking_decimation_mode") == "auto" else str(d)
+
+
 def summary_table(rows: list[dict]) -> str:
     """The probe's result rows as a markdown table, sorted by resolution and rate, with each
     issue-14 target the row has and whether it was met."""
     def key(r):
         w, h = (int(x) for x in r["resolution"].split("x"))
         return (w * h, r["rate_hz"], r.get("dds_profile", "default"),
+                r.get("tracking_decimation_mode", "fixed") == "auto",
                 r.get("tracking_decimation", 1))
 
     def ms(x):
@@ -189,7 +198,7 @@ def summary_table(rows: list[dict]) -> str:
         nf = r.get("node_frames", {})
         lines.append(
             f"| {r['resolution']} | {r['rate_hz']:g} Hz | {r.get('dds_profile', 'default')} | "
-            f"{r.get('tracking_decimation', 1)} | "
+            f"{_decimation(r)} | "
             f"{r['odometry']} / {r['sent']} ({100 * frames:.1f} %) | "
             f"{ms(r['latency_ms_median'])} / {ms(r['latency_ms_p95'])} ms | "
             f"{r.get('image_delay_ms_median') or '-'} ms | {ms(cpu)} % | "

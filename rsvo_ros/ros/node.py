@@ -41,7 +41,7 @@ from rsvo_ros.odometry.pipeline import (
     PipelineOptions,
     warm_up,
 )
-from rsvo_ros.odometry.tracker import TrackerOptions, refine_window_or_auto
+from rsvo_ros.odometry.tracker import AutoDecimation, TrackerOptions, refine_window_or_auto
 from rsvo_ros.odometry.twist import twist_in_frame
 from rsvo_ros.ros.convert import (
     COVARIANCE_UNKNOWN,
@@ -129,7 +129,8 @@ class RsvoNode(Node):
         self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
                       "held": 0, "time_resets": 0, "map_refound": 0,
                       "brightness_compensated": 0, "fault_resets": 0,
-                      "frames_revised": 0, "dropped_kept": 0}  # fmt: skip
+                      "frames_revised": 0, "dropped_kept": 0,
+                      "decimation_steps": 0}  # fmt: skip
         # dropped images the line-delay refinement keeps for its second pass (converted on
         # the worker, before the next frame it processes; the callback only queues them)
         self._dropped: deque = deque(maxlen=DROPPED_KEPT_MAX)
@@ -143,6 +144,10 @@ class RsvoNode(Node):
         self._large_image_hinted = False
         self._image_size: tuple[int, int] | None = None  # (width, height) of raw images
         self._decimation_hinted = False
+        # tracking_decimation_mode auto: steps the tracking resolution down when images drop
+        self._auto_decimation = AutoDecimation(int(self.p["tracking_decimation"])) \
+            if self.p["tracking_decimation_mode"] == "auto" else None  # fmt: skip
+        self._busy_s = 0.0  # time spent processing frames since the start (s)
         self._proc_ms: deque = deque(maxlen=100)
         self._track_ms: deque = deque(maxlen=100)  # per frame, without the window BA
         self._map_ms: deque = deque(maxlen=100)  # per keyframe: the window BA
@@ -426,6 +431,8 @@ class RsvoNode(Node):
             self._ensure_pipeline()
             self.pipeline.set_camera(K, D, float(self.p["line_delay"]))
             res = self.pipeline.process(stamp_ns(msg.header), gray)
+            self._busy_s += time.perf_counter() - t0
+            self._step_decimation()
         self._proc_ms.append((time.perf_counter() - t0) * 1e3)
         self._save_line_delay()
         self._log_refinement()
@@ -457,6 +464,21 @@ class RsvoNode(Node):
         t_pub = time.perf_counter()
         self._publish(msg, res, gray)
         self._publish_ms.append((time.perf_counter() - t_pub) * 1e3)
+
+    def _step_decimation(self) -> None:
+        """tracking_decimation_mode auto: track at a lower resolution from the next image on
+        when too many images were dropped (call with _pipeline_lock held)."""
+        if self._auto_decimation is None:
+            return
+        with self._lock:
+            received, dropped = self.stats["received"], self.stats["dropped"]
+        step = self._auto_decimation.update(received, dropped, self._busy_s, time.monotonic(),
+                                            self.pipeline.image_size)
+        if step is None:
+            return
+        self.pipeline.tracker.set_decimation(step.factor)
+        self.stats["decimation_steps"] += 1
+        self.get_logger().info(f"tracking_decimation_mode auto: {step.describe()}")
 
     def _keep_dropped(self) -> None:
         """The images dropped since the last processed frame, handed to the line-delay
@@ -633,7 +655,9 @@ class RsvoNode(Node):
             **{k: str(v) for k, v in self.stats.items()},
             "model": self.p["model"], "line_delay": str(self.p["line_delay"]),
             "readout_direction": self.p["readout_direction"],
-            "tracking_decimation": str(self.p["tracking_decimation"]),
+            # the decimation in use (auto mode: it may have stepped up from the parameter's)
+            "tracking_decimation": str(self._tracking_decimation()),
+            "tracking_decimation_mode": self.p["tracking_decimation_mode"],
             # the camera's frame id in use ('' : not named yet, camera_frame '' waits for an
             # image); whether the last odometry carried a twist (measured) or none (1e6)
             "camera_frame": self.camera_frame,
@@ -660,10 +684,16 @@ class RsvoNode(Node):
             f"camera driver's environment: export FASTRTPS_DEFAULT_PROFILES_FILE=$(python -m "
             f"rsvo_ros.ros.dds) (README, 'Large images over DDS')")
 
+    def _tracking_decimation(self) -> int:
+        pipeline = self.pipeline
+        return pipeline.tracker.options.decimation if pipeline is not None \
+            else int(self.p["tracking_decimation"])  # fmt: skip
+
     def _hint_decimation(self) -> None:
         """Once: a node tracking large images at full resolution drops many of them."""
         received, dropped = self.stats["received"], self.stats["dropped"]
         if self._decimation_hinted or self.p["tracking_decimation"] != 1 \
+                or self._auto_decimation is not None \
                 or received < DROP_HINT_MIN_FRAMES or dropped <= DROP_HINT_SHARE * received:
             return
         pipeline = self.pipeline
@@ -675,7 +705,8 @@ class RsvoNode(Node):
             f"dropped {dropped} of {received} images ({100.0 * dropped / received:.0f} %): this "
             f"machine does not keep up with {size[0]}x{size[1]} images at their rate. "
             f"tracking_decimation:=2 tracks at half the resolution, at 1280x720 in about 0.6x "
-            f"the time (README, 'Tracking at a reduced resolution')")
+            f"the time; tracking_decimation_mode:=auto does so by itself when images drop "
+            f"(README, 'Tracking at a reduced resolution')")
 
     def _line_delay_diagnostics(self) -> dict[str, str]:
         pipeline = self.pipeline

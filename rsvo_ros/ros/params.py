@@ -32,6 +32,11 @@ from rsvo_ros.odometry.pairwise import (
 )
 from rsvo_ros.odometry.pipeline import BACKENDS
 from rsvo_ros.odometry.tracker import (
+    AUTO_BUSY_SHARE,
+    AUTO_DROP_SHARE,
+    AUTO_MIN_SIDE_PX,
+    AUTO_SETTLE_IMAGES,
+    AUTO_SPAN_IMAGES,
     DEFAULT_WINDOW_PX,
     MAX_DECIMATION,
     MAX_REFINE_WINDOW_PX,
@@ -46,6 +51,7 @@ from rsvo_ros.twoview.estimator import MODELS
 QOS_CHOICES = ("auto", "reliable", "best_effort")
 LOST_CHOICES = ("large_covariance", "none")
 LINE_DELAY_MODES = ("fixed", "auto")
+DECIMATION_MODES = ("fixed", "auto")
 IMAGE_TRANSPORTS = ("raw", "compressed")
 
 
@@ -169,6 +175,15 @@ PARAMETERS = {
         "(frames dropped; less accurate on vehicles and on a real pair); the KLT windows, the "
         "refinement and the corner distances are then in the reduced image's pixels (README).",
         1, MAX_DECIMATION)),
+    "tracking_decimation_mode": ("fixed", _str(
+        "fixed: track at tracking_decimation throughout; auto: start there and, when more "
+        f"than {100 * AUTO_DROP_SHARE:.0f} % of {AUTO_SPAN_IMAGES} images in a row were dropped "
+        f"or the node was busy processing more than {100 * AUTO_BUSY_SHARE:.0f} % of their time "
+        f"(after the first {AUTO_SETTLE_IMAGES}), track at the next lower resolution without "
+        f"losing a track, as long as the reduced images' longer side stays at least "
+        f"{AUTO_MIN_SIDE_PX} px (a 640x480 camera stays at full resolution); logged and in the "
+        "diagnostics; never back during a run (README, 'Tracking at a reduced resolution').",
+        DECIMATION_MODES)),
     "klt_refine_window_px": (-1, _int(
         "KLT: after the pyramid's window, polish each track at full resolution with a "
         "window of this many px (the window backend's vehicles otherwise shrink by about 2 %/s; "
@@ -324,7 +339,7 @@ def params_yaml(estimate: dict, source: str, mode: str = "fixed",
 CHOICES = {"model": MODELS, "backend": BACKENDS, "image_qos_reliability": QOS_CHOICES,
            "readout_direction": READOUTS,
            "image_transport": IMAGE_TRANSPORTS, "line_delay_mode": LINE_DELAY_MODES,
-           "lost_odometry": LOST_CHOICES}
+           "lost_odometry": LOST_CHOICES, "tracking_decimation_mode": DECIMATION_MODES}
 
 
 def read_config(values: dict) -> NodeConfig:

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import sys
 from pathlib import Path
 
@@ -37,6 +36,7 @@ import numpy as np
 
 from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.sim.synth import SynthConfig
+from rsvo_ros.tools.rate_table import run_cases
 from rsvo_ros.tools.replay import ReplayConfig, replay, replay_two_pass
 from rsvo_ros.tools.synth_bag import write_bag
 
@@ -261,17 +261,14 @@ def _with_error(value: float | None, true: float) -> str | None:
             else f"{value * 1e6:.1f}")
 
 
-def _run_case(job: tuple) -> dict:
-    return run_case(*job)
-
-
-def _print_row(row: dict) -> None:
+def _row_line(k: int, n: int, row: dict) -> str:
+    """The progress line of the k-th of n cases."""
     e = row["estimate"]
     got = "-" if e["line_delay_s"] is None else f"{e['line_delay_s'] * 1e6:.1f} us/row"
-    print(f"[line_delay_table] {row['case']}: true {row['line_delay_true_s'] * 1e6:.0f} us/row, "
-          f"auto {got} ({e['status']}); ATE auto {row['ate_auto_m']:.3f} m (two passes "
-          f"{row['ate_two_pass_m']:.3f} m), true {row['ate_true_m']:.3f} m, zero "
-          f"{row['ate_zero_m']:.3f} m", flush=True)
+    return (f"[line_delay_table {k}/{n}] {row['case']}: true "
+            f"{row['line_delay_true_s'] * 1e6:.0f} us/row, auto {got} ({e['status']}); ATE auto "
+            f"{row['ate_auto_m']:.3f} m (two passes {row['ate_two_pass_m']:.3f} m), true "
+            f"{row['ate_true_m']:.3f} m, zero {row['ate_zero_m']:.3f} m")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -284,13 +281,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     jobs = [(args.out, motion, sev, seed, ld, args.frames) for _, motion, sev, seed, ld in CASES]
-    with multiprocessing.Pool(max(args.jobs, 1)) as pool:
-        done = pool.imap(_run_case, jobs)  # in order, printed as each finishes
-        rows = []
-        for (group, *_), row in zip(CASES, done, strict=True):
-            row["group"] = group
-            rows.append(row)
-            _print_row(row)
+    # in order, printed as each finishes; one job: in this process (rate_table.run_cases)
+    rows = run_cases(run_case, jobs, max(args.jobs, 1), _row_line)
+    for (group, *_), row in zip(CASES, rows, strict=True):
+        row["group"] = group
     (args.out / "line_delay.json").write_text(json.dumps(rows, indent=1))
     text = table(rows) + "\n\n" + summary(rows) + "\n"
     (args.out / "line_delay.md").write_text(text)

@@ -10,7 +10,15 @@ from conftest import ground_truth_pose
 from rsvo_ros.core.geometry import rotation_angle_deg
 from rsvo_ros.core.lens import undistort_points
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
-from rsvo_ros.odometry.tracker import FeatureTracker, TrackerOptions
+from rsvo_ros.odometry.tracker import (
+    AUTO_BUSY_SHARE,
+    AUTO_DROP_SHARE,
+    AUTO_SETTLE_IMAGES,
+    AUTO_SPAN_IMAGES,
+    AutoDecimation,
+    FeatureTracker,
+    TrackerOptions,
+)
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig, intrinsics, render_sequence
 from rsvo_ros.tools.replay import accuracy
 
@@ -228,6 +236,77 @@ def test_decimated_tracking_hands_on_full_resolution_pixels():
     for bad in (0, 5, -1, 1.5, True, None, "2"):
         with pytest.raises(ValueError, match="decimation must be an integer 1-4"):
             FeatureTracker(TrackerOptions(decimation=bad))
+
+
+@pytest.mark.parametrize("old, new", [(1, 2), (2, 1), (2, 3)])
+def test_a_tracker_changes_its_decimation_without_losing_tracks(old, new):
+    """set_decimation between two images: every track of the image before goes on into the
+    next one at the new resolution (same ids, the 6 x 4 px shift in full-resolution pixels),
+    where a tracker that forgot the previous image's resolution would lose them all."""
+    image = render_sequence(SynthConfig(frames=1, width=640, height=360))[0].image
+    shifted = np.roll(image, (4, 6), axis=(0, 1))
+    tracker = FeatureTracker(TrackerOptions(max_features=200, grid=(4, 3), decimation=old))
+    tracker.track(image)
+    ids_before, pts_before = tracker.current()
+    tracker.set_decimation(new)
+    assert tracker.options.decimation == new
+    ids_carried, pts_carried = tracker.current()  # the same features, in full-res pixels
+    assert np.array_equal(ids_carried, ids_before)
+    assert np.allclose(pts_carried, pts_before, atol=1e-3)
+    pair = tracker.track(shifted)
+    inner = (pair.pts_prev[:, 0] > 30) & (pair.pts_prev[:, 1] > 30)
+    assert inner.sum() > 0.6 * len(ids_before)
+    assert set(pair.ids.tolist()) <= set(ids_before.tolist())
+    flow = pair.pts_curr[inner] - pair.pts_prev[inner]
+    assert np.allclose(np.median(flow, axis=0), [6.0, 4.0], atol=0.15)
+    with pytest.raises(ValueError, match="decimation must be an integer 1-4"):
+        tracker.set_decimation(5)
+
+
+def test_auto_decimation_steps_down_after_a_span_with_too_many_drops_or_no_headroom():
+    """AutoDecimation: nothing judged before AUTO_SETTLE_IMAGES; then a span of
+    AUTO_SPAN_IMAGES received images with more than AUTO_DROP_SHARE dropped, or during which
+    processing took more than AUTO_BUSY_SHARE of the time, steps the decimation up by one,
+    while the reduced image's longer side stays >= 480 px: a 1280x720 camera goes to 2 and
+    stays there, a 640x480 one stays at 1, a 1920x1080 one goes on to 4."""
+    settle, span = AUTO_SETTLE_IMAGES, AUTO_SPAN_IMAGES
+    few = int(AUTO_DROP_SHARE * span)  # at the share: not more than it
+    idle = 0.5 * AUTO_BUSY_SHARE  # busy seconds per second of a node with headroom
+    hd = (1280, 720)
+    auto = AutoDecimation()
+    # the start-up's drops and load do not count; the first span starts at `settle`
+    assert auto.update(settle - 1, settle - 1, 10.0, 10.0, hd) is None
+    assert auto.update(settle, settle, 10.0, 10.0, hd) is None
+    assert auto.update(settle + span - 1, settle + span, 10.0, 11.0, hd) is None  # not whole
+    t = 10.0 + span / 30.0
+    assert auto.update(settle + span, settle + few, 10.0 + idle * (t - 10.0), t, hd) is None
+    t2 = t + span / 30.0
+    step = auto.update(settle + 2 * span, settle + 2 * few + 1, 10.0 + idle * (t2 - 10.0), t2,
+                       hd)
+    assert step is not None and (step.factor, step.previous) == (2, 1) and auto.factor == 2
+    assert (step.received, step.dropped) == (span, few + 1)
+    assert f"dropped {few + 1} of the last {span} images" in step.describe()
+    assert auto.update(settle + 3 * span, settle + 3 * span, 0.0, t2 + 2.0, hd) is None
+    assert auto.factor == 2  # 1280 / 3 < 480
+    vga = AutoDecimation()
+    assert vga.update(settle, 0, 0.0, 0.0, (640, 480)) is None
+    assert vga.update(settle + span, span, 2.0, 2.0, (640, 480)) is None and vga.factor == 1
+    # no image dropped, but busy 90 % of the time: no headroom, steps; 60 %: kept
+    for share, steps in ((0.9, True), (0.6, False)):
+        busy = AutoDecimation(settle=0)
+        assert busy.update(0, 0, 0.0, 0.0, hd) is None
+        step = busy.update(span, 0, share * 2.0, 2.0, hd)
+        assert (step is not None) == steps and busy.factor == (2 if steps else 1)
+        if steps:
+            assert step.dropped == 0 and "busy 90 % of the time" in step.describe()
+    full_hd = AutoDecimation(start=2, settle=0)
+    factors = [full_hd.update(n * span, n * span // 2, 0.0, float(n), (1920, 1080))
+               for n in range(5)]
+    assert [s.factor for s in factors if s is not None] == [3, 4]  # 1920 / 4 = 480: the last
+    with pytest.raises(ValueError, match="start must be an integer 1-4"):
+        AutoDecimation(start=0)
+    with pytest.raises(ValueError, match="span >= 1"):
+        AutoDecimation(span=0)
 
 
 def test_the_pipeline_tracks_at_half_resolution_and_skips_too_small_images():

@@ -47,14 +47,18 @@ def test_rows_of_both_dds_profiles_sit_side_by_side():
 
 
 def test_rows_of_each_tracking_decimation_sit_side_by_side():
-    """Runs of the node at full resolution (rows without the field: before it existed) and at
-    tracking_decimation 2, each judged against the same target."""
-    table = summary_table([_row("1280x720", 30.0, 291, 56.0, decimation=2),
+    """Runs of the node at full resolution (rows without the field: before it existed), at
+    tracking_decimation 2 and in auto mode (after the fixed ones, saying where it ended), each
+    judged against the same target."""
+    auto = _row("1280x720", 30.0, 275, 70.0, decimation=2)
+    auto["tracking_decimation_mode"] = "auto"
+    table = summary_table([auto, _row("1280x720", 30.0, 291, 56.0, decimation=2),
                            _row("1280x720", 30.0, 220, 130.0)])
     lines = table.splitlines()[2:]
-    assert [line.split(" | ")[3] for line in lines] == ["1", "2"]
+    assert [line.split(" | ")[3] for line in lines] == ["1", "2", "auto (ended at 2)"]
     assert ">= 90 % not met; p95 <= 80 ms not met" in lines[0]
     assert ">= 90 % met; p95 <= 80 ms met" in lines[1]
+    assert "275 / 300" in lines[2]
 
 
 def test_the_probe_names_the_dds_profile_it_runs_with(monkeypatch, tmp_path):

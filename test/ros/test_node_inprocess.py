@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
 
-from rsvo_ros.odometry.tracker import DEFAULT_WINDOW_PX
+from rsvo_ros.odometry.tracker import DEFAULT_WINDOW_PX, AutoDecimation
 from rsvo_ros.ros.node import STARTUP_ERRORS, RsvoNode
 from rsvo_ros.ros.params import (
     DEFAULTS_FILE,
@@ -919,6 +919,43 @@ def test_a_node_that_drops_large_images_gets_one_hint_at_decimation(ros_context,
         assert len(hints) == (1 if hinted else 0), log.infos
         if hinted:
             assert f"{width}x{height}" in hints[0] and "of 200 images" in hints[0]
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize("mode", ["fixed", "auto"])
+def test_tracking_decimation_mode_auto_steps_down_when_images_drop(ros_context, monkeypatch,
+                                                                    mode):
+    """tracking_decimation_mode auto: once a span of images had too many dropped, the node
+    tracks at half the resolution from the next frame on, without losing the odometry (every
+    frame posed), logs it, counts it and reports the decimation in use in /diagnostics; fixed
+    (the default): the same drops change nothing. (The governor's span and its minimum image
+    side scaled down to this test's 320x180 frames and 8 images.)"""
+    info, msgs = _frames(8)
+    h = Harness(ros_context, [Parameter("model", value="gs"),
+                              Parameter("tracking_decimation_mode", value=mode)])
+    log = _Log()
+    monkeypatch.setattr(h.node, "get_logger", lambda: log)
+    try:
+        if mode == "auto":
+            assert isinstance(h.node._auto_decimation, AutoDecimation)
+            h.node._auto_decimation = AutoDecimation(settle=0, span=3, min_side_px=150)
+        else:
+            assert h.node._auto_decimation is None
+        h.feed(info, msgs[:3])
+        h.node.stats["dropped"] += 2  # as if 2 of the next 3 images had come too soon
+        h.feed(info, msgs[3:])
+        stepped = mode == "auto"
+        assert h.node.pipeline.tracker.options.decimation == (2 if stepped else 1)
+        assert h.node.stats["decimation_steps"] == int(stepped)
+        assert len(h.odom) == 8 and h.node.stats["bad"] == 0 and h.node.stats["held"] == 0
+        values = h.node._diagnostic_values()
+        assert values["tracking_decimation"] == ("2" if stepped else "1")
+        assert values["tracking_decimation_mode"] == mode
+        steps = [t for t in log.infos if t.startswith("tracking_decimation_mode auto")]
+        assert len(steps) == int(stepped), log.infos
+        if stepped:
+            assert "tracking at 1/2 of the resolution" in steps[0]
     finally:
         h.close()
 

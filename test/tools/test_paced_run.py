@@ -37,7 +37,24 @@ def test_paced_run_drop_every_leaves_out_every_nth_frame(capsys):
     assert sum(out["outcomes"].values()) == 20 and "delay_ms_median" not in out
 
 
+def test_paced_run_steps_the_decimation_down_as_the_node_does(capsys):
+    """--decimation auto with --drop: frames fed far faster than processed are dropped, so
+    a whole span after the start-up (30 + 60 images) steps the tracking to half
+    resolution, as the node's tracking_decimation_mode auto does (960 px wide: 480 at half,
+    the least it takes); --motion renders another sequence."""
+    assert main(["--frames", "200", "--rate", "300", "--resolution", "960x120", "--drop",
+                 "--decimation", "auto", "--motion", "vehicle"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["motion"] == "vehicle" and out["decimation"] == "auto"
+    assert len(out["decimation_steps"]) == 1 and out["decimation_steps"][0][1] == 2
+    assert out["processed"] + out["dropped"] == 200
+    # a run this short may not move enough for a Sim(3) fit: then it says so
+    assert out["ate_m"] is not None or out["ate_error"]
+
+
 @pytest.mark.parametrize("args, message", [
+    (["--decimation", "0"], "--decimation must be 1-4 or auto"),
+    (["--decimation", "auto"], "--decimation auto needs --drop"),
     (["--drop", "--mapping", "inline"], "--drop needs --mapping async"),
     (["--drop-every", "1"], "--drop-every must be 0 (none) or at least 2"),
     (["--window-option", "async_mapping=1"], "not a numeric WindowOptions field"),
