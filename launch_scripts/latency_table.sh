@@ -11,8 +11,9 @@
 # rsvo_ros.ros.dds; README "Large images over DDS"), e.g. "default large_images".
 # RSVO_LATENCY_DECIMATIONS lists the node's tracking_decimation values to run each row with
 # (default "1"; e.g. "1 2 auto", auto: tracking_decimation_mode auto from full resolution:
-# README "Tracking at a reduced resolution"). About 8 minutes per profile and decimation; run
-# it on an otherwise idle machine.
+# README "Tracking at a reduced resolution"). RSVO_LATENCY_RESOLUTIONS lists the resolutions
+# (default "640x480 1280x720"). About 8 minutes per profile and decimation at both
+# resolutions; run it on an otherwise idle machine.
 set -euo pipefail
 REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
@@ -22,6 +23,14 @@ OUT="${RSVO_LATENCY_OUTPUT:-$REPO_ROOT/results/latency}"
 FRAMES="${RSVO_LATENCY_FRAMES:-300}"
 PROFILES="${RSVO_LATENCY_DDS_PROFILES:-default}"
 DECIMATIONS="${RSVO_LATENCY_DECIMATIONS:-1}"
+RESOLUTIONS="${RSVO_LATENCY_RESOLUTIONS:-640x480 1280x720}"
+for res in $RESOLUTIONS; do
+    case "$res" in
+        [1-9]*x[1-9]*) ;;
+        *) echo "RSVO_LATENCY_RESOLUTIONS takes WIDTHxHEIGHT values, got $res" >&2
+           exit 2 ;;
+    esac
+done
 for decimation in $DECIMATIONS; do
     case "$decimation" in
         1 | 2 | 3 | 4 | auto) ;;
@@ -40,7 +49,7 @@ LARGE_IMAGES="$(python -m rsvo_ros.ros.dds)"
 mkdir -p "$OUT"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-87}"
 results=()
-for res in 640x480 1280x720; do
+for res in $RESOLUTIONS; do
     # a 36 ms readout at either height; reliable images (the probe renders before it
     # advertises, so the node's auto QoS would time out and fall back to best effort)
     ld=$(python -c "print(0.036 / int('$res'.split('x')[1]))")
