@@ -467,7 +467,8 @@ class RsvoNode(Node):
 
     def _step_decimation(self) -> None:
         """tracking_decimation_mode auto: track at a lower resolution from the next image on
-        when too many images were dropped (call with _pipeline_lock held)."""
+        when too many images were dropped or the node had no headroom
+        (:class:`AutoDecimation`; call with _pipeline_lock held)."""
         if self._auto_decimation is None:
             return
         with self._lock:
