@@ -66,6 +66,30 @@ def test_colcon_build_installs_a_runnable_rsvo_node(tmp_path):
     # the parameter file at the defaults, for --params-file
     assert (install / "share" / "rsvo_ros" / "config" / "rsvo_node.yaml").read_text() == \
         (REPO_ROOT / "rsvo_ros" / "ros" / "rsvo_node.yaml").read_text()
+    # the launch file and the files it names: the upright parameters and the RViz view
+    launch = install / "share" / "rsvo_ros" / "launch" / "rsvo.launch.py"
+    named = _launch_constants(launch)
+    assert set(named) == {"RVIZ_CONFIG", "UPRIGHT_PARAMS"}
+    for key, source in (("RVIZ_CONFIG", "rsvo.rviz"), ("UPRIGHT_PARAMS", "rsvo_upright.yaml")):
+        installed = install / "share" / "rsvo_ros" / named[key]
+        assert installed.read_bytes() == (REPO_ROOT / "rsvo_ros" / "ros" / source).read_bytes()
+
+
+def _launch_constants(path: Path) -> dict[str, str]:
+    """The launch file's module-level ``NAME = os.path.join(...)`` paths (launch itself is not
+    on PyPI: the file is read, not run), and a check that it declares ``upright`` and ``rviz``."""
+    import ast
+
+    tree = ast.parse(path.read_text())
+    out = {}
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call) \
+                and ast.unparse(node.value.func) == "os.path.join":  # fmt: skip
+            out[node.targets[0].id] = str(Path(*(a.value for a in node.value.args)))
+    declared = {c.args[0].value for c in ast.walk(tree) if isinstance(c, ast.Call)
+                and ast.unparse(c.func) == "DeclareLaunchArgument"}  # fmt: skip
+    assert {"upright", "rviz", "model", "line_delay"} <= declared, declared
+    return out
 
 
 ODOM_EXCHANGE = r"""

@@ -216,6 +216,53 @@ def test_base_frame_odometry_uses_the_fixed_transform(ros_context):
         h.close()
 
 
+RVIZ_FILE = DEFAULTS_FILE.parent / "rsvo.rviz"
+UPRIGHT_FILE = DEFAULTS_FILE.parent / "rsvo_upright.yaml"
+
+
+def test_the_rviz_view_shows_every_topic_the_node_publishes_as_it_publishes_it(ros_context):
+    """rviz/rsvo.rviz: one display per output topic of a node at its defaults (odometry,
+    path, keyframes, local map, tracks image), each subscribed with the publisher's
+    reliability (a reliable display on a best-effort topic shows nothing), the fixed frame the
+    node's odom frame, and /tf shown."""
+    view = yaml.safe_load(RVIZ_FILE.read_text())["Visualization Manager"]
+    node = RsvoNode(context=ros_context)
+    try:
+        published = {pub.topic_name: pub.qos_profile.reliability for pub in node.publishers
+                     if pub.topic_name not in ("/diagnostics", "/tf", "/tf_static", "/rosout",
+                                               "/parameter_events")}  # fmt: skip
+        assert view["Global Options"]["Fixed Frame"] == node.p["odom_frame"]
+    finally:
+        node.destroy_node()
+    shown = {d["Topic"]["Value"]: d["Topic"]["Reliability Policy"] for d in view["Displays"]
+             if "Topic" in d}  # fmt: skip
+    policy = {"Reliable": ReliabilityPolicy.RELIABLE,
+              "Best Effort": ReliabilityPolicy.BEST_EFFORT}
+    assert {t: policy[r] for t, r in shown.items()} == published
+    assert len(published) == 5
+    assert "rviz_default_plugins/TF" in {d["Class"] for d in view["Displays"]}
+
+
+def test_the_upright_parameter_file_gives_z_up_odometry(tmp_path):
+    """config/rsvo_upright.yaml: odometry for base_link, x forward and z up (REP 103), as the
+    RViz view expects: the camera driving forward along its optical axis moves along x."""
+    q = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_quat()  # optical -> base
+    ctx = rclpy.Context()
+    ctx.init(args=["--ros-args", "--params-file", str(UPRIGHT_FILE)],
+             domain_id=ros_domain(3))
+    h = Harness(ctx, [Parameter("model", value="gs")])
+    try:
+        assert h.node.p["base_frame"] == "base_link"
+        assert np.allclose(h.node.p["base_to_camera"], [0.0, 0.0, 0.0, *q])
+        h.feed(*_frames(4))
+        assert {o.child_frame_id for o in h.odom} == {"base_link"}
+        last = h.odom[-1].pose.pose.position
+        assert last.x > 0 and abs(last.x) > 3 * max(abs(last.y), abs(last.z))
+    finally:
+        h.close()
+        ctx.try_shutdown()
+
+
 def test_odometry_twist_is_the_base_frames_motion_with_a_measured_covariance(ros_context):
     """The twist of /rsvo/odom: unknown (1e6) for the first pose, then the base frame's
     velocity (lever arm included), which the published base poses' differences agree with."""
