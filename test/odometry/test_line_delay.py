@@ -322,6 +322,43 @@ def test_refine_regresses_the_readouts_turning_on_the_turns():
     assert abs(refine_line_delay(stamps, R, w2, taus).line_delay_s - 5e-5) < 0.03 * 5e-5
 
 
+def test_refine_leaves_out_the_common_turn_the_refining_window_holds_to_its_start():
+    """A sustained turn (a vehicle in a bend) with swings: the refining pass's window holds
+    the frames' mean world rate to the turns at the line delay it runs with (the map's shear
+    removed), so the blocks' common part says tau0, not the camera's line delay; the
+    regression with an intercept (the default) leaves it out, through zero it is pulled."""
+    from rsvo_ros.core.geometry import so3_exp, so3_log
+    from rsvo_ros.odometry.line_delay import RefineOptions, refine_line_delay
+
+    tau0, tau_true = 4e-5, 5e-5
+    amp, freq = np.array([0.3, 0.5, 0.2]), np.array([0.4, 0.3, 0.5])
+
+    def rot(tt):  # a 0.6 rad/s turn about the vertical, swinging about all three axes
+        swing = amp / (2 * np.pi * freq) * np.sin(2 * np.pi * freq * tt)
+        return so3_exp(np.array([0.0, 0.6 * tt, 0.0])) @ so3_exp(swing)
+
+    t = np.arange(150) / 30.0
+    R = np.array([rot(tt) for tt in t])
+    h = 1e-5  # the true world rates, numerically
+    w_world = np.array([so3_log(rot(tt + h) @ rot(tt).T) / h for tt in t])
+    k = tau_true / tau0  # what the images measure at tau0, held to the turns on average
+    seen = k * w_world - (k - 1.0) * w_world.mean(axis=0)
+    w_cam = np.einsum("nji,nj->ni", R, seen)
+    stamps, taus = (t * 1e9).round().astype(np.int64), np.full(len(t), tau0)
+    pulled = refine_line_delay(stamps, R, w_cam, taus, RefineOptions(intercept=False))
+    free = refine_line_delay(stamps, R, w_cam, taus)
+    assert free.status == pulled.status == "refined"
+    assert abs(free.line_delay_s - tau_true) < 0.02 * tau_true
+    assert pulled.line_delay_s < tau_true - 0.05 * tau_true  # towards tau0
+    # a turn without swings leaves nothing about the mean: not observable, said so
+    steady = np.array([so3_exp(np.array([0.0, 0.6 * tt, 0.0])) for tt in t])
+    w_steady = np.tile([0.0, 0.6 * k, 0.0], (len(t), 1))
+    flat = refine_line_delay(stamps, steady, w_steady, taus)
+    assert flat.status == "not observable" and "about their mean" in flat.reason
+    assert refine_line_delay(stamps, steady, w_steady, taus,
+                             RefineOptions(intercept=False)).status == "refined"
+
+
 def test_refine_says_why_it_cannot():
     from rsvo_ros.odometry.line_delay import refine_line_delay
 
