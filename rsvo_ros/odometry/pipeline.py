@@ -296,6 +296,9 @@ class OdometryPipeline:
         self._last_stamp: int | None = None
         self._intervals: list[int] = []  # the last frame intervals (ns): the stream's cadence
         self._ahead_stamp: int | None = None  # a skipped far-ahead stamp
+        # the newest frame the caller dropped unprocessed since the last processed one
+        # (note_dropped): where the stream's clock is for the next frame's time checks
+        self._dropped_stamp: int | None = None
         self._index = 0
         self._started = False
         tau = self.line_delay if o.model == "rs" else 0.0
@@ -371,6 +374,17 @@ class OdometryPipeline:
         self._refine_unprocessed += 1
         return True
 
+    def note_dropped(self, stamp_ns: int) -> None:
+        """A frame the caller received and dropped unprocessed to keep up (the node's
+        newest-frame policy), given before the next processed frame: the next frame's stamp
+        is checked against it (a stall of 20 frame intervals or a second, with the frames
+        dropped meanwhile, made the next frame look far ahead of the stream and skipped it,
+        logged as bad input). Ignored before the first frame and for a stamp not after the
+        last processed one."""
+        last = self._last_stamp
+        if last is not None and stamp_ns > last:
+            self._dropped_stamp = max(self._dropped_stamp or stamp_ns, int(stamp_ns))
+
     def _process(self, stamp_ns: int, gray: np.ndarray) -> FrameResult:
         t0 = time.perf_counter()
         idx = self._index
@@ -407,6 +421,7 @@ class OdometryPipeline:
         if jump:
             return result("skipped", jump)
         prev_stamp, self._last_stamp = self._last_stamp, stamp_ns
+        self._dropped_stamp = None
         if prev_stamp is not None:
             self._intervals = (self._intervals + [stamp_ns - prev_stamp])[-15:]
         height, width = gray.shape
@@ -668,7 +683,8 @@ class OdometryPipeline:
                 return "reset"
             return f"backwards stamp ({stamp_ns} after {last} ns)"
         ahead = max(o.ahead_frames * (interval or 0.0), o.ahead_min_s * 1e9)
-        if stamp_ns - last <= ahead:
+        # after the frames the caller dropped (note_dropped), from the newest of them
+        if stamp_ns - max(last, self._dropped_stamp or last) <= ahead:
             self._ahead_stamp = None
             return None
         pending, self._ahead_stamp = self._ahead_stamp, stamp_ns

@@ -134,6 +134,9 @@ class RsvoNode(Node):
         # dropped images the line-delay refinement keeps for its second pass (converted on
         # the worker, before the next frame it processes; the callback only queues them)
         self._dropped: deque = deque(maxlen=DROPPED_KEPT_MAX)
+        # the newest image dropped since the last processed one: its stamp is the stream's
+        # clock for the next frame's time checks (OdometryPipeline.note_dropped)
+        self._dropped_stamp: int | None = None
         self._bad_kinds: set[str] = set()
         self._faults = 0  # processing errors in a row (FAULT_RESET_AFTER)
         self._recv_times: deque = deque(maxlen=100)
@@ -301,6 +304,7 @@ class RsvoNode(Node):
             self.stats["received"] += 1
             if self._pending is not None:
                 self.stats["dropped"] += 1  # the worker is busy: keep only the newest
+                self._dropped_stamp = stamp_ns(self._pending[0].header)
                 pipeline = self.pipeline
                 if pipeline is not None and pipeline.wants_unprocessed_frames:
                     self._dropped.append(self._pending[0])  # for the refinement's second pass
@@ -482,9 +486,17 @@ class RsvoNode(Node):
         self.get_logger().info(f"tracking_decimation_mode auto: {step.describe()}")
 
     def _keep_dropped(self) -> None:
-        """The images dropped since the last processed frame, handed to the line-delay
-        refinement (``line_delay_refine_frames``): its second pass then runs over the camera's
-        frames, not only those the node kept up with, as a replay of the recording does."""
+        """The images dropped since the last processed frame: the newest one's stamp to the
+        pipeline's clock (a stall's drops do not make the next frame look far ahead), and the
+        images to the line-delay refinement (``line_delay_refine_frames``): its second pass
+        then runs over the camera's frames, not only those the node kept up with, as a replay
+        of the recording does."""
+        with self._lock:
+            newest, self._dropped_stamp = self._dropped_stamp, None
+        if newest is not None:
+            with self._pipeline_lock:
+                if self.pipeline is not None:
+                    self.pipeline.note_dropped(newest)
         with self._lock:
             if not self._dropped:
                 return

@@ -48,6 +48,8 @@ def run_case(motion: str, severity: float, seed: int, line_delay: float, frames:
         if newest < k:
             time.sleep(k / rate - now)
             continue
+        if newest > k:  # as the node: the newest dropped one is the stream's clock
+            pipe.note_dropped(images[newest - 1][0])
         if keep_dropped and pipe.wants_unprocessed_frames:  # as the node: for the refinement
             for j in range(k, newest):
                 pipe.keep_unprocessed(*images[j])

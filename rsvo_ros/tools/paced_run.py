@@ -66,6 +66,8 @@ def paced_run(frames: int, rate: float, mapping: str, seed: int, width: int, hei
                 # the newest frame that has arrived (the ones it replaced are dropped)
                 newest = min(int((time.monotonic() - t0) * rate), len(rendered) - 1)
                 dropped += max(newest - k, 0)
+                if newest > k:  # as the node: the newest dropped one is the stream's clock
+                    pipeline.note_dropped(round(rendered[newest - 1].stamp * 1e9))
                 k = max(k, newest)
             if drop_every and k % drop_every == drop_every - 1:
                 dropped += 1

@@ -488,6 +488,33 @@ def test_a_restarted_chain_keeps_its_baseline_near_the_one_it_restarted_with():
     assert grow(free.chain, 40) == pytest.approx(0.05 * 1.25**40)
 
 
+def test_frames_dropped_by_the_caller_keep_the_stream_clock():
+    """A stall: the caller drops the frames of 1.5 s (the node's newest-frame policy) and
+    says so (note_dropped): the next frame, 1.5 s after the last processed one but one
+    interval after the last dropped one, is processed; without the note it is skipped as
+    far ahead (and logged as bad input by the node). A note about an earlier stamp, or
+    before the first frame, changes nothing."""
+    cfg = SynthConfig(frames=4, motion="vehicle", severity=0.5, width=320, height=180, seed=2)
+    frames = render_sequence(cfg)
+    K = SequenceRenderer(cfg).K
+    ns = [round(f.stamp * 1e9) for f in frames]
+    stall = 1_500_000_000
+    results = {}
+    for noted in (False, True):
+        pipe = OdometryPipeline(K, None, cfg.tau, PipelineOptions(model="gs"))
+        pipe.note_dropped(ns[0] - 10**9)  # before the first frame: ignored
+        first = pipe.process(ns[0], frames[0].image)
+        assert first.status == "first"
+        if noted:
+            pipe.note_dropped(ns[0] - 10**6)  # not after the last processed frame: ignored
+            for k in range(1, 46):  # 45 frames of a 30 Hz stream dropped meanwhile
+                pipe.note_dropped(ns[0] + k * (ns[1] - ns[0]))
+        results[noted] = pipe.process(ns[1] + stall, frames[1].image)
+        pipe.close()
+    assert results[False].status == "skipped" and "far ahead" in results[False].reason
+    assert results[True].status != "skipped"
+
+
 def test_time_jumps_late_frames_far_ahead_stamps_and_pauses():
     cfg = SynthConfig(frames=8, motion="vehicle", severity=0.5, width=320, height=180, seed=2)
     frames = render_sequence(cfg)

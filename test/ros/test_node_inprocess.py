@@ -526,6 +526,49 @@ def test_frames_arriving_while_busy_are_dropped_not_queued(ros_context):
         h.close()
 
 
+def test_a_stall_with_dropped_frames_does_not_skip_the_next_frame(ros_context):
+    """The worker busy for 1.5 s of a 30 Hz stream (a DDS burst at start-up, a long frame):
+    the frames meanwhile are dropped, and the next one, 1.5 s after the last processed frame,
+    is processed, not skipped as "stamp far ahead" and logged as bad input (the pipeline is
+    told the dropped frames' newest stamp)."""
+    h = Harness(ros_context, [Parameter("model", value="gs")])
+    try:
+        info, msgs = _frames(2)
+        h.feed(info, msgs[:1])
+        t0, dt = _stamp(msgs[0]), 33_333_333
+
+        def at(k):  # frame k of the stream (the second image, stamped k intervals on)
+            m = Image()
+            m.height, m.width, m.encoding, m.step, m.data = 180, 320, "mono8", 320, msgs[1].data
+            m.header.stamp.sec, m.header.stamp.nanosec = divmod(t0 + k * dt, 10**9)
+            return m
+
+        gate, seen = threading.Event(), []
+        original = h.node.pipeline.process
+
+        def slow(stamp, gray):  # the pipeline busy with frame 1
+            seen.append(stamp)
+            if len(seen) == 1:
+                gate.wait(10.0)
+            return original(stamp, gray)
+
+        h.node.pipeline.process = slow
+        h.node._on_image(at(1))
+        t_end = time.monotonic() + 10
+        while not seen and time.monotonic() < t_end:
+            time.sleep(0.01)
+        for k in range(2, 47):  # 1.5 s of frames while frame 1 is processed
+            h.node._on_image(at(k))
+        gate.set()
+        h._idle()
+        assert seen == [t0 + dt, t0 + 46 * dt]
+        assert h.node.stats["dropped"] == 44 and h.node.stats["processed"] == 3
+        assert h.node.stats["bad"] == h.node.stats["skipped"] == 0
+        assert [_stamp(o) for o in h.odom][-1] == t0 + 46 * dt
+    finally:
+        h.close()
+
+
 def test_the_image_callback_never_waits_for_a_frame_being_processed(ros_context):
     """While the pipeline works on a frame, new images are still taken (and counted): the
     callback used to wait for the processing, and DDS overwrote the images it did not take
