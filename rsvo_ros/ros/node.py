@@ -493,15 +493,12 @@ class RsvoNode(Node):
         of the recording does."""
         with self._lock:
             newest, self._dropped_stamp = self._dropped_stamp, None
+            dropped = list(self._dropped)
+            self._dropped.clear()
         if newest is not None:
             with self._pipeline_lock:
                 if self.pipeline is not None:
                     self.pipeline.note_dropped(newest)
-        with self._lock:
-            if not self._dropped:
-                return
-            dropped = list(self._dropped)
-            self._dropped.clear()
         for msg in dropped:
             try:
                 gray = image_to_gray(msg)

@@ -78,16 +78,15 @@ def paced_run(frames: int, rate: float, mapping: str, seed: int, width: int, hei
                 time.sleep(0.001)
             stamp = round(frame.stamp * 1e9)
             res = pipeline.process(stamp, frame.image)
+            busy_s += res.time_ms * 1e-3
             if auto is not None:  # as the node: after the frame, with the counts so far
                 newest = min(int((time.monotonic() - t0) * rate), len(rendered) - 1)
                 step = auto.update(max(newest, k) + 1, dropped + max(newest - k - 1, 0),
-                                   busy_s + res.time_ms * 1e-3, time.monotonic() - t0,
-                                   pipeline.image_size)
+                                   busy_s, time.monotonic() - t0, pipeline.image_size)
                 if step is not None:
                     pipeline.tracker.set_decimation(step.factor)
                     steps.append([k, step.factor])
             times.append(res.time_ms)
-            busy_s += res.time_ms * 1e-3
             outcomes[f"{res.status}: {res.reason.split(' (')[0] or 'tracked'}"] += 1
             if slow_ms is not None and res.time_ms > slow_ms:
                 slow.append([k, round(res.time_ms, 1), res.reason or "tracked"])
