@@ -822,14 +822,16 @@ class WindowOdometry:
         turn = np.degrees(np.linalg.norm(so3_log(predicted.R.T @ found.R)))
         if not turn <= o.reloc_max_rotation_deg:
             return None
-        found = guided_matches(found, mem, obs.x, desc, valid, self.focal,
-                               o.reloc_guided_px * self._px, o.reloc_max_hamming)  # fmt: skip
         usual = self._usual_speed()
         if not self._provisional(stamp_ns) and usual and self._last is not None:
             # a trusted map (not one rebuilt after a loss) moves the frame by about a step
+            # (checked before the guided matching, which keeps the pose: a rejected re-finding
+            # right after a loss cost it 8-16 ms at 1280x720)
             dt = max((stamp_ns - self._last.stamp_ns) * 1e-9, 1e-3)
             if np.linalg.norm(found.p - predicted.p) > o.reloc_max_jump_steps * usual * dt:
                 return None
+        found = guided_matches(found, mem, obs.x, desc, valid, self.focal,
+                               o.reloc_guided_px * self._px, o.reloc_max_hamming)  # fmt: skip
         sv = max(o.prior_v_rel * (usual or 0.0), o.prior_v_floor)
         w0, v0 = predicted.w.copy(), np.zeros(3)
         j = found.obs_idx

@@ -12,6 +12,7 @@ from rsvo_ros.core.geometry import so3_exp, so3_log
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
 from rsvo_ros.odometry.relocalize import (
     LandmarkMemory,
+    _pairs_within,
     describe,
     guided_matches,
     match_memory,
@@ -125,6 +126,28 @@ def test_a_frame_that_looked_away_is_posed_against_the_memory(rng):
     d_o, v_o = describe(other, _corners(other))
     assert match_memory(mem.snapshot(), (_corners(other) - K[:2, 2]) / F, d_o, v_o, F, 0.8,
                         64, 2.0, 30) is None  # fmt: skip
+
+
+def test_the_guided_search_finds_the_pairs_a_dense_distance_matrix_finds(rng):
+    """The search by projection's radius query (a k-d tree) gives the pairs, and their order,
+    that the full (observations x memory) distance matrix gives, to the bit: on random points,
+    with pairs exactly at the radius (not near: the test is strict) and non-finite
+    projections among them."""
+    f, radius = 700.0, 8.0
+    for trial in range(60):
+        a = rng.uniform(-0.6, 0.6, (int(rng.integers(0, 400)), 2))
+        b = rng.uniform(-0.8, 0.8, (int(rng.integers(0, 3000)), 2))
+        k = min(len(a), len(b))
+        b[:k] = a[:k] + [radius / f, 0.0]  # on the circle (up to rounding either side)
+        b[k: k + 2 * (trial % 2)] = np.inf
+        with np.errstate(invalid="ignore"):
+            d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(axis=2) * f**2
+        want_i, want_j = np.nonzero(d2 < radius**2)
+        got_i, got_j = _pairs_within(a, b, radius, f)
+        assert np.array_equal(got_i, want_i) and np.array_equal(got_j, want_j), trial
+    # some pairs are found at all (the check is not vacuous)
+    a = rng.uniform(-0.1, 0.1, (50, 2))
+    assert len(_pairs_within(a, a + 1.0 / f, radius, f)[0]) >= 50
 
 
 def _walk(refind: bool, frames: int = 300, seed: int = 100,
