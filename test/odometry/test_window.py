@@ -342,6 +342,67 @@ def test_async_pick_ups_keep_the_tracked_state_a_rotation(rng):
     odometry._mapper = None
 
 
+@pytest.mark.parametrize("inline", [False, True])
+def test_a_weak_keyframe_is_mapped_beside_tracking_and_the_next_frame_waits_for_it(inline):
+    """Async mapping, a frame that keeps a fifth of its tracks (tracking weak: inliers under
+    half the median): it is a keyframe, and its window BA runs on the mapping thread
+    (``weak_keyframes_inline`` False, the default: the frame is published as tracked) or on
+    the tracking path (True: the frame waits for its BA). Either way the next frame waits for
+    the mapper and tracks against the map with that keyframe in it."""
+    tau, weak = 3e-5, 24
+    K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
+    states, X = _walk_states(30, tau)
+    rng = np.random.default_rng(2)
+    wo = WindowOdometry(K, tau, WindowOptions(async_mapping=True,
+                                              weak_keyframes_inline=inline))  # fmt: skip
+    mapper = wo._mapper
+    submitted, idle_at_tracking, est, gt = [], [], {}, {}
+    submit, track_map = mapper.submit, wo._track_map
+
+    def spy_submit(kf, state):
+        submitted.append(kf)
+        submit(kf, state)
+
+    def spy_track_map(stamp_ns, obs):
+        idle_at_tracking.append(mapper._job is None)
+        return track_map(stamp_ns, obs)
+
+    mapper.submit, wo._track_map = spy_submit, spy_track_map
+    try:
+        for k, st in enumerate(states[:weak + 2]):
+            Xc = (X - st.p) @ st.R
+            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
+                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            if k == weak:
+                mapper.wait_idle()  # (a keyframe only while the mapper is idle)
+                vis = vis[: int(0.2 * len(vis))]
+                n_submitted = len(submitted)
+            res = wo.track(st.stamp_ns, _obs_of(st, X[vis], vis, tau, rng, 0.3))
+            assert np.isfinite(res.state.p).all()
+            gt[st.stamp_ns] = st.pose(-180.0 * tau)
+            if res.status == "posed":
+                est[st.stamp_ns] = wo.row0_pose(res.state)
+            if k >= weak - 4:
+                assert res.status == "posed", (k, res.reason)
+            if k == weak:
+                assert res.keyframe and wo._weak, (res.inliers, wo._tracked_at_kf)
+                kf = wo.map.keyframes[-1] if inline else wo._pending_kf
+                assert kf.state.stamp_ns == st.stamp_ns
+                if inline:  # mapped on this frame: published refined, nothing sent
+                    assert res.ba is not None and len(submitted) == n_submitted
+                else:  # sent to the mapping thread: published as tracked
+                    assert res.ba is None and submitted[-1] is kf
+            if k == weak + 1:
+                assert idle_at_tracking[-1]  # it waited for the weak keyframe's BA
+                assert kf in wo.map.keyframes
+                if not inline:  # and picked it up: the keyframe's correction reported
+                    assert any(before.stamp_ns == kf.state.stamp_ns
+                               for before, _ in res.ba_moved)  # fmt: skip
+    finally:
+        wo.close()
+    assert accuracy(gt, est)["ate_m"]["rmse"] < 0.01  # the map kept its accuracy
+
+
 def test_a_tracking_pose_that_explains_under_half_its_points_is_not_taken():
     """min_inlier_ratio: a frame whose map points are mostly wrong matches (in a fast turn a
     diverged pose explained a quarter of them, was made a keyframe and emptied the map) is not
