@@ -129,12 +129,6 @@ class WindowOptions:
     # tracking is weak: inliers below this share of the median of the last frames (a fast turn
     # leaving the map; tracking against a map one keyframe behind lost it there)
     sync_below_inlier_share: float = 0.5
-    # a keyframe made while tracking is weak: True, its window BA runs on the tracking path (the
-    # frame is published refined, after the BA); False, on the mapping thread as any other
-    # keyframe's (the frame is published as tracked) and the next frame waits for it, so
-    # tracking goes on against the new map either way (1280x720: the BA's 25-45 ms came off
-    # the weak frames' delay)
-    weak_keyframes_inline: bool = False
     # refined keyframe states kept for the keyframe path (None: all, as the replay's
     # keyframes.tum needs; a live node keeps its path length, so memory stays flat)
     keyframe_log_max: int | None = None
@@ -587,8 +581,8 @@ class WindowOdometry:
             kf.rejected.update(int(t) for t in obs.ids[ib][~inl])
             result.keyframe = True
             self._tracked_at_kf = inliers
-            if self._mapper is not None and not (self._weak and o.weak_keyframes_inline):
-                self._pending_kf = kf  # (weak: the next frame waits for it)
+            if self._mapper is not None and not self._weak:
+                self._pending_kf = kf
                 self._mapper.submit(kf, state.copy())
             else:
                 before = state.copy()

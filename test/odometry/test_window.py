@@ -342,32 +342,27 @@ def test_async_pick_ups_keep_the_tracked_state_a_rotation(rng):
     odometry._mapper = None
 
 
-@pytest.mark.parametrize("inline", [False, True])
-def test_a_weak_keyframe_is_mapped_beside_tracking_and_the_next_frame_waits_for_it(inline):
+def test_a_weak_keyframe_is_mapped_on_the_tracking_path_and_the_next_frame_tracks_with_it():
     """Async mapping, a frame that keeps a fifth of its tracks (tracking weak: inliers under
-    half the median): it is a keyframe, and its window BA runs on the mapping thread
-    (``weak_keyframes_inline`` False, the default: the frame is published as tracked) or on
-    the tracking path (True: the frame waits for its BA). Either way the next frame waits for
-    the mapper and tracks against the map with that keyframe in it."""
+    half the median of the last frames): it is a keyframe whose window BA runs on the tracking
+    path, not on the mapping thread (the frame is published refined), and the next frame
+    tracks against the map with that keyframe in it (``sync_below_inlier_share``; on the
+    mapping thread instead, the thirty-second session's live runs were not faster: notebook,
+    "Re-finding and weak keyframes off the delay")."""
     tau, weak = 3e-5, 24
     K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
     states, X = _walk_states(30, tau)
     rng = np.random.default_rng(2)
-    wo = WindowOdometry(K, tau, WindowOptions(async_mapping=True,
-                                              weak_keyframes_inline=inline))  # fmt: skip
+    wo = WindowOdometry(K, tau, WindowOptions(async_mapping=True))
     mapper = wo._mapper
-    submitted, idle_at_tracking, est, gt = [], [], {}, {}
-    submit, track_map = mapper.submit, wo._track_map
+    submitted, est, gt = [], {}, {}
+    submit = mapper.submit
 
     def spy_submit(kf, state):
         submitted.append(kf)
         submit(kf, state)
 
-    def spy_track_map(stamp_ns, obs):
-        idle_at_tracking.append(mapper._job is None)
-        return track_map(stamp_ns, obs)
-
-    mapper.submit, wo._track_map = spy_submit, spy_track_map
+    mapper.submit = spy_submit
     try:
         for k, st in enumerate(states[:weak + 2]):
             Xc = (X - st.p) @ st.R
@@ -386,20 +381,14 @@ def test_a_weak_keyframe_is_mapped_beside_tracking_and_the_next_frame_waits_for_
                 assert res.status == "posed", (k, res.reason)
             if k == weak:
                 assert res.keyframe and wo._weak, (res.inliers, wo._tracked_at_kf)
-                kf = wo.map.keyframes[-1] if inline else wo._pending_kf
+                kf = wo.map.keyframes[-1]
                 assert kf.state.stamp_ns == st.stamp_ns
-                if inline:  # mapped on this frame: published refined, nothing sent
-                    assert res.ba is not None and len(submitted) == n_submitted
-                else:  # sent to the mapping thread: published as tracked
-                    assert res.ba is None and submitted[-1] is kf
+                assert res.ba is not None and len(submitted) == n_submitted  # mapped here
             if k == weak + 1:
-                assert idle_at_tracking[-1]  # it waited for the weak keyframe's BA
-                assert kf in wo.map.keyframes
-                if not inline:  # and picked it up: the keyframe's correction reported
-                    assert any(before.stamp_ns == kf.state.stamp_ns
-                               for before, _ in res.ba_moved)  # fmt: skip
+                assert kf in wo.map.keyframes and res.inliers > 0
     finally:
         wo.close()
+    assert submitted  # the other keyframes went to the mapping thread
     assert accuracy(gt, est)["ate_m"]["rmse"] < 0.01  # the map kept its accuracy
 
 
