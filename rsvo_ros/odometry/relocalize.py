@@ -209,16 +209,18 @@ def _pairs_within(a: np.ndarray, b: np.ndarray, radius_px: float,
     memory holds thousands of points; the dense matrix took 8-16 ms per re-finding at
     1280x720)."""
     none = np.zeros(0, np.int64), np.zeros(0, np.int64)
-    ok_b = np.flatnonzero(np.isfinite(b).all(axis=1))  # (a non-finite one is never near)
-    if not len(a) or not len(ok_b) or not radius_px > 0:
+    # (a non-finite point is never near; the tree refuses them)
+    ok_a = np.flatnonzero(np.isfinite(a).all(axis=1))
+    ok_b = np.flatnonzero(np.isfinite(b).all(axis=1))
+    if not len(ok_a) or not len(ok_b) or not radius_px > 0:
         return none
     # candidates from the tree (a little wider), then the dense matrix's test on them
     tree = cKDTree(b[ok_b])
-    near = tree.query_ball_point(a, radius_px / focal * (1.0 + 1e-6), return_sorted=True)
+    near = tree.query_ball_point(a[ok_a], radius_px / focal * (1.0 + 1e-6), return_sorted=True)
     counts = np.fromiter((len(n) for n in near), np.int64, len(near))
     if not counts.sum():
         return none
-    i = np.repeat(np.arange(len(a)), counts)
+    i = np.repeat(ok_a, counts)
     j = ok_b[np.concatenate([np.asarray(n, np.int64) for n in near if len(n)])]
     d2 = ((a[i] - b[j]) ** 2).sum(axis=1) * focal**2
     keep = d2 < radius_px**2
