@@ -9,8 +9,9 @@ from the image stamp to the odometry's arrival (median, p95), the node's own sta
 diagnostics (tracking per frame, mapping per keyframe, publishing per frame, medians) and its
 CPU use (% of one core, from /proc; the node is found by name or ``--node-pid``), and the
 node's frame counters over the run (received, processed, dropped, held, skipped: why frames
-got no odometry). Start the node first, e.g.
-``rsvo_node --ros-args -p line_delay:=5e-5``.
+got no odometry), which frames got none (``missing_frames``) and which were the slowest
+twentieth (``tail_frames``, ``[frame, delay_ms]``: the delay p95's stretch). Start the node
+first, e.g. ``rsvo_node --ros-args -p line_delay:=5e-5``.
 
 ``--summary RESULT.json ...`` prints the results of earlier runs as the README's table, each
 row against issue 14's targets (``launch_scripts/latency_table.sh`` runs and summarises).
@@ -115,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         while time.monotonic() < t_drain:
             rclpy.spin_once(node, timeout_sec=0.05)
         lat = np.array([(got[s] - s / 1e9) * 1e3 for s in sent if s in got])
+        delays = {k: (got[s] - s / 1e9) * 1e3 for k, s in enumerate(sent) if s in got}
         row = {"rate_hz": rate, "resolution": args.resolution, "sent": len(sent),
                "odometry": len(lat),
                "latency_ms_median": float(np.median(lat)) if len(lat) else None,
@@ -139,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
                # which frames got no odometry (dropped while busy, held, lost): a start-up
                # phase shows as the first indices
                "missing_frames": [k for k, s in enumerate(sent) if s not in got],
+               # the frames whose delay makes the p95: where the slow stretch is
+               "tail_frames": tail_frames(delays),
                # the node's own counts over this run (diagnostics): why frames are missing
                "node_frames": {k: n - counts0.get(k, 0) for k, n in _frame_counts(diag).items()}}
         results.append(row)
@@ -149,6 +153,17 @@ def main(argv: list[str] | None = None) -> int:
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
+
+
+def tail_frames(delays_ms: dict[int, float], share: float = 0.05) -> list[list[float]]:
+    """``[[frame, delay_ms], ...]`` of the slowest ``share`` of the frames with odometry (at
+    least one; by frame index; delays rounded to 0.1 ms): the frames a delay p95 is made of,
+    so a run says where its slow stretch is (the walk's look-around: frames 128-170)."""
+    if not delays_ms:
+        return []
+    n = max(1, int(np.ceil(share * len(delays_ms))))
+    slowest = sorted(delays_ms, key=lambda k: (-delays_ms[k], k))[:n]
+    return [[k, round(float(delays_ms[k]), 1)] for k in sorted(slowest)]
 
 
 # issue 14's targets: (resolution, rate) -> (share of frames with odometry, delay p95 ms)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from rsvo_ros.ros.dds import LARGE_IMAGES_PROFILE, PROFILE_ENV
-from rsvo_ros.ros.latency import _frame_counts, dds_profile_name, summary_table
+from rsvo_ros.ros.latency import _frame_counts, dds_profile_name, summary_table, tail_frames
 
 
 def test_frame_counts_come_from_the_nodes_diagnostics():
@@ -70,3 +70,13 @@ def test_the_probe_names_the_dds_profile_it_runs_with(monkeypatch, tmp_path):
     other.write_text("<profiles/>")
     monkeypatch.setenv(PROFILE_ENV, str(other))
     assert dds_profile_name() == str(other)
+
+
+def test_the_tail_frames_are_the_slowest_twentieth_in_frame_order():
+    """A run of 100 frames with odometry whose frames 40-44 took 90-94 ms (the rest 20 ms,
+    frame 7 missing): the tail is those five, by frame index; a short run keeps one frame."""
+    delays = {k: 20.0 + k * 1e-3 for k in range(101) if k != 7}
+    delays.update({40 + i: 94.0 - i for i in range(5)})
+    assert tail_frames(delays) == [[40, 94.0], [41, 93.0], [42, 92.0], [43, 91.0], [44, 90.0]]
+    assert tail_frames({3: 10.0, 5: 30.04}) == [[5, 30.0]]
+    assert tail_frames({}) == []
