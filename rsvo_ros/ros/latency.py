@@ -115,8 +115,9 @@ def main(argv: list[str] | None = None) -> int:
         t_drain = time.monotonic() + 5.0
         while time.monotonic() < t_drain:
             rclpy.spin_once(node, timeout_sec=0.05)
-        lat = np.array([(got[s] - s / 1e9) * 1e3 for s in sent if s in got])
+        # each frame with odometry: from its stamp to the odometry's arrival (ms)
         delays = {k: (got[s] - s / 1e9) * 1e3 for k, s in enumerate(sent) if s in got}
+        lat = np.array(list(delays.values()))
         row = {"rate_hz": rate, "resolution": args.resolution, "sent": len(sent),
                "odometry": len(lat),
                "latency_ms_median": float(np.median(lat)) if len(lat) else None,
