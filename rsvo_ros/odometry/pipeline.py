@@ -185,6 +185,10 @@ class FrameResult:
     # previous image + offset``, and tracked in the previous image's grey levels; None: it did
     # not change (or the frame was not tracked)
     brightness_change: tuple[float, float] | None = None
+    # (dx, dy) px: KLT alone kept too few tracks (a turn past its reach) and the tracks were
+    # found again from the images' shift by phase correlation (TrackerOptions.shift_retry);
+    # None: KLT's own (or the frame was not tracked)
+    image_shift: tuple[float, float] | None = None
     # line_delay auto: the first estimate came with this frame, and the trajectory's earlier
     # frames were processed again with it (PipelineOptions.line_delay_rerun_max_frames): their
     # new results, in the published odometry frame, oldest first
@@ -396,6 +400,7 @@ class OdometryPipeline:
                               None if status == "skipped" else self.T_world_cam.copy(),
                               self.covariance.copy(), **kw)  # fmt: skip
             res.brightness_change = self.tracker.last_photometric if tracked else None
+            res.image_shift = self.tracker.last_shift if tracked else None
             res.tracking = self._tracking_state(status, reason)
             res.time_ms = (time.perf_counter() - t0) * 1e3
             return res

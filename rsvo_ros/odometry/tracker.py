@@ -62,6 +62,16 @@ PHOTOMETRIC_ROUNDS = 2  # refit, map and track again at most this often per imag
 PHOTOMETRIC_MIN_POINTS = 20  # tracked points to fit the change; fewer: the images' own levels
 PHOTOMETRIC_CLIPPED = (4, 251)  # grey levels at or beyond these are clipped (not fitted)
 PHOTOMETRIC_PATCH = 7  # px: the grey level of a tracked point is its patch's mean
+# Re-tracking from the image's global shift: a fast pan or head turn moves the image by more
+# than the pyramid's reach (at 15 Hz the walks' look-around moves it 150-240 px between frames
+# at 1280x720, and KLT kept 1-15 of 500 tracks). When KLT keeps less than RETRY_BELOW_SHARE of
+# the tracks, the shift between the two images is measured by phase correlation on copies
+# averaged down to about GLOBAL_SHIFT_SIDE_PX on their longer side (0.5-0.7 ms), and if it is at
+# least half the KLT window, every track is tracked again from it; the attempt that keeps more
+# tracks is taken. Frames where KLT keeps its tracks are tracked as before, bit for bit (README,
+# "Re-tracking a fast turn from the image's shift")
+RETRY_BELOW_SHARE = 0.7
+GLOBAL_SHIFT_SIDE_PX = 320
 
 
 def check_refine_window(px: int | None, name: str = "refine_window_px",
@@ -214,6 +224,9 @@ class TrackerOptions:
     # For a live node that cannot keep up with large images (README, "Tracking at a reduced
     # resolution")
     decimation: int = 1
+    # track again from the two images' global shift (phase correlation) when KLT keeps less
+    # than RETRY_BELOW_SHARE of the tracks (a turn faster than KLT's reach)
+    shift_retry: bool = True
 
 
 @dataclass
@@ -260,6 +273,9 @@ class FeatureTracker:
         # where it was tracked in the previous image's grey levels; None: no change found
         self.last_photometric: tuple[float, float] | None = None
         self._brightness_rate: tuple[float, float] | None = None  # the last significant change
+        # the image shift (px, x and y, at the tracking resolution) the last image's tracks
+        # were found from after KLT alone kept too few; None where KLT's own were taken
+        self.last_shift: tuple[float, float] | None = None
 
     def reset(self) -> None:
         self._prev_img = self._prev_full = None
@@ -322,6 +338,7 @@ class FeatureTracker:
         o = self.options
         empty = TrackedPair(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64))
         self.last_photometric = None
+        self.last_shift = None
         dt = None
         if stamp_ns is not None and self._stamp_ns is not None:
             dt = (stamp_ns - self._stamp_ns) * 1e-9
@@ -334,7 +351,10 @@ class FeatureTracker:
             self._brightness_rate = None
         else:
             guess = self._predicted_motion(dt)
+            rate = self._brightness_rate
             p1f, good = self._track_photometric(img, guess)
+            if o.shift_retry and good.sum() < RETRY_BELOW_SHARE * len(good):
+                p1f, good = self._retry_from_shift(img, p1f, good, rate)
             pair = TrackedPair(self._pts[good].astype(float), p1f[good].astype(float),
                                self._ids[good].copy())  # fmt: skip
             self._flow = (p1f[good] - self._pts[good]).astype(np.float32)
@@ -440,6 +460,26 @@ class FeatureTracker:
         levels = np.percentile(x, [5.0, 95.0])
         return fit[0], fit[1], _changed(fit, levels), levels
 
+    def _retry_from_shift(self, img: np.ndarray, p1f: np.ndarray, good: np.ndarray,
+                          rate: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray]:
+        """KLT kept too few tracks into ``img``: track every feature again from the global
+        shift between the previous image and ``img`` (:func:`global_shift`) if it is at least
+        half the KLT window, with the brightness change ``rate`` the first attempt started
+        from; the attempt that keeps more tracks, and :attr:`last_shift` where it is the new
+        one."""
+        shift = global_shift(self._prev_img, img)
+        if shift is None or np.hypot(*shift) < 0.5 * self.options.window_px:
+            return p1f, good
+        first = (p1f, good, self._brightness_rate, self.last_photometric)
+        self._brightness_rate = rate
+        guess = np.tile(np.float32(shift), (len(self._pts), 1)).reshape(-1, 1, 2)
+        p1s, goods = self._track_photometric(img, guess)
+        if goods.sum() <= good.sum():
+            _, _, self._brightness_rate, self.last_photometric = first
+            return p1f, good
+        self.last_shift = (float(shift[0]), float(shift[1]))
+        return p1s, goods
+
     def _predicted_motion(self, dt: float | None) -> np.ndarray | None:
         """(n, 1, 2) image motion of each feature expected by ``dt`` s after the last image
         (its last motion at the same rate) after a gap, None without one or without a
@@ -484,6 +524,23 @@ class FeatureTracker:
             self._ids = np.concatenate([self._ids,
                                         np.arange(self._next_id, self._next_id + len(pts))])
             self._next_id += len(pts)
+
+
+def global_shift(prev: np.ndarray, img: np.ndarray,
+                 side_px: int = GLOBAL_SHIFT_SIDE_PX) -> tuple[float, float] | None:
+    """The shift (px, x and y) that moves ``prev``'s content onto ``img``'s (two gray images of
+    one size), by phase correlation (``cv2.phaseCorrelate``, Hann window) on copies averaged
+    down by an integer factor to about ``side_px`` on their longer side; None where the images
+    are too small to measure it or it is not finite."""
+    factor = max(1, int(round(max(prev.shape[:2]) / side_px)))
+    a, b = decimated(prev, factor), decimated(img, factor)
+    if min(a.shape[:2]) < 8:
+        return None
+    window = cv2.createHanningWindow((a.shape[1], a.shape[0]), cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(a.astype(np.float32), b.astype(np.float32), window)
+    if not np.isfinite([dx, dy]).all():
+        return None
+    return float(dx * factor), float(dy * factor)
 
 
 def _map_levels(img: np.ndarray, change: tuple[float, float] | None) -> np.ndarray:

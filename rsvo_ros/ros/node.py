@@ -128,7 +128,8 @@ class RsvoNode(Node):
         self.pipeline: OdometryPipeline | None = None
         self.stats = {"received": 0, "processed": 0, "dropped": 0, "bad": 0, "skipped": 0,
                       "held": 0, "time_resets": 0, "map_refound": 0,
-                      "brightness_compensated": 0, "fault_resets": 0,
+                      "brightness_compensated": 0, "tracked_from_shift": 0,
+                      "fault_resets": 0,
                       "frames_revised": 0, "dropped_kept": 0,
                       "decimation_steps": 0}  # fmt: skip
         # dropped images the line-delay refinement keeps for its second pass (converted on
@@ -350,7 +351,8 @@ class RsvoNode(Node):
                                        int(self.p["klt_refine_window_px"]),
                                        "parameter klt_refine_window_px"),
                                    photometric_compensation=bool(
-                                       self.p["photometric_compensation"])),
+                                       self.p["photometric_compensation"]),
+                                   shift_retry=bool(self.p["klt_shift_retry"])),
                                motion_prior=bool(self.p["motion_prior"]))
         opts.ransac.threshold_px = float(self.p["ransac_threshold_px"])
         opts.lm.max_iterations = int(self.p["lm_max_iterations"])
@@ -461,6 +463,8 @@ class RsvoNode(Node):
             self._take_revised(res.revised)
         if res.brightness_change is not None:
             self.stats["brightness_compensated"] += 1
+        if res.image_shift is not None:
+            self.stats["tracked_from_shift"] += 1
         self._state = {"initialising": f"initialising: {res.reason}", "tracking": "tracking",
                        "lost": f"lost: {res.reason}"}[res.tracking]  # fmt: skip
         self._tracking = res.tracking

@@ -194,6 +194,11 @@ PARAMETERS = {
         "the change on the tracked points and track again in the last image's grey levels "
         "(counted in diagnostics as brightness_compensated; false: track the images as they "
         "are).")),
+    "klt_shift_retry": (True, _bool(
+        "KLT: where it keeps less than 70 % of the tracks (a turn faster than its reach: at "
+        "15 Hz a quick head turn moves the image 150-240 px), measure the images' shift by "
+        "phase correlation and track again from it, keeping the attempt with more tracks "
+        "(counted in diagnostics as tracked_from_shift; false: KLT's own tracks only).")),
     "ransac_threshold_px": (1.0, _float("Sampson distance of an inlier (px).", 0.05, 20.0)),
     "motion_prior": (True, _bool(
         "RS: centre the velocity prior on the constant velocity of each frame pair's motion "

@@ -293,6 +293,7 @@ def replay(cfg: ReplayConfig) -> dict:
     faults = fault_resets = 0  # processing errors in a row; resets after FAULT_RESET_AFTER
     refound = 0  # frames where the window re-found a lost map by its descriptors
     brightness = 0  # frames tracked in the previous image's grey levels (auto exposure)
+    from_shift = 0  # frames tracked again from the images' shift (a turn past KLT's reach)
     last_map_ns = None
     images_read = 0
     pipeline: OdometryPipeline | None = None
@@ -451,6 +452,7 @@ def replay(cfg: ReplayConfig) -> dict:
                 statuses[res.status] += 1
                 refound += res.refound
                 brightness += res.brightness_change is not None
+                from_shift += res.image_shift is not None
                 if res.time_reset:
                     time_resets += 1
                     new_trajectory()
@@ -513,6 +515,7 @@ def replay(cfg: ReplayConfig) -> dict:
         "klt_refine_window_px": (pipeline.tracker.refine_window_px if pipeline is not None
                                  else None),
         "photometric_compensation": options.tracker.photometric_compensation,
+        "klt_shift_retry": options.tracker.shift_retry,
         # numeric WindowOptions fields away from their defaults (--window-option)
         "window_options_changed": changed_window_options(options.window),
         # the line delay used at the end (line_delay auto: the estimate, see line_delay_auto)
@@ -546,6 +549,9 @@ def replay(cfg: ReplayConfig) -> dict:
         # frames whose brightness changed (auto exposure), tracked in the previous image's grey
         # levels (TrackerOptions.photometric_compensation)
         "frames_brightness_compensated": brightness,
+        # frames where KLT alone kept too few tracks and they were found again from the
+        # images' shift (TrackerOptions.shift_retry: a turn faster than KLT's reach)
+        "frames_tracked_from_shift": from_shift,
         "trajectories": [{"first_stamp_ns": min(t), "frames": len(t)} for t in trajectories],
     }  # fmt: skip
     if auto and pipeline is not None:
@@ -1108,6 +1114,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-photometric-compensation", action="store_true",
                    help="KLT: do not map an image whose brightness changed (auto exposure) into "
                         "the previous image's grey levels before tracking")
+    p.add_argument("--no-klt-shift-retry", action="store_true",
+                   help="KLT: where it keeps less than 70 %% of the tracks, do not track them "
+                        "again from the images' shift (phase correlation)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -1175,6 +1184,7 @@ def main(argv: list[str] | None = None) -> int:
     options.rotation_only_parallax_px = args.rotation_only_parallax
     options.uncertain_rotation_deg = uncertain
     options.tracker.photometric_compensation = not args.no_photometric_compensation
+    options.tracker.shift_retry = not args.no_klt_shift_retry
     options.tracker.window_px = args.klt_window
     options.tracker.decimation = args.decimation
     set_window_options(options, args.window_option)
@@ -1215,6 +1225,9 @@ def main(argv: list[str] | None = None) -> int:
     if s.get("frames_brightness_compensated"):
         events.append(f"the brightness changed on {s['frames_brightness_compensated']} "
                       "frame(s) (auto exposure): tracked in the previous image's grey levels")
+    if s.get("frames_tracked_from_shift"):
+        events.append(f"KLT lost its tracks on {s['frames_tracked_from_shift']} frame(s) (a "
+                      "turn past its reach): tracked again from the images' shift")
     if events:
         print("rsvo_replay: " + "; ".join(events))
     if "line_delay_auto" in s:

@@ -18,6 +18,7 @@ from rsvo_ros.odometry.tracker import (
     AutoDecimation,
     FeatureTracker,
     TrackerOptions,
+    global_shift,
 )
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig, intrinsics, render_sequence
 from rsvo_ros.tools.replay import accuracy
@@ -99,11 +100,12 @@ def _pan_with_a_dropped_frame(wide, options, stamps=True):
 def test_the_flow_prediction_keeps_a_fast_pan_across_a_dropped_frame(wide):
     # 80 px in one step is beyond KLT's reach from no motion; from each track's last motion
     # at the same rate it is a few pixels. The README's 30 Hz 1280x720 runs lost the map at
-    # the fast turn this way
-    options = TrackerOptions(max_features=200)
+    # the fast turn this way. (The prediction alone: the re-tracking from the images' shift,
+    # tested below, would rescue this pan too)
+    options = TrackerOptions(max_features=200, shift_retry=False)
     pair, right = _pan_with_a_dropped_frame(wide, options)
     assert right.sum() >= 120 and right.mean() > 0.95, (len(right), right.sum())
-    off = TrackerOptions(max_features=200, predict_flow=False)
+    off = TrackerOptions(max_features=200, predict_flow=False, shift_retry=False)
     _, right_off = _pan_with_a_dropped_frame(wide, off)
     assert right_off.sum() < 60, right_off.sum()
     # without stamps there is nothing to scale the motion by: no prediction
@@ -126,6 +128,47 @@ def test_the_flow_prediction_keeps_a_fast_pan_across_a_dropped_frame(wide):
             pair = tracker.track(wide[:, 20 * k:20 * k + 480].copy(), k * 33_333_333)
         tracks.append(pair.pts_curr)
     assert len(tracks[0]) > 100 and np.array_equal(tracks[0], tracks[1])
+
+
+def test_the_global_shift_is_measured_by_phase_correlation(wide):
+    # the content moves 150 px left and 7 px up (measured on copies averaged down to ~320 px)
+    shift = global_shift(wide[0:300, 0:480], wide[7:307, 150:630])
+    assert shift is not None and np.allclose(shift, (-150.0, -7.0), atol=2.0), shift
+    assert global_shift(wide[0:300, 0:480], wide[0:300, 0:480]) == pytest.approx((0.0, 0.0),
+                                                                             abs=0.5)
+    assert global_shift(wide[:6, :6], wide[:6, :6], side_px=2) is None  # too small to measure
+
+
+def _turn(wide, shift_px, retry):
+    """Two consecutive frames (1/30 s apart, so no flow prediction) of a pan of ``shift_px``."""
+    tracker = FeatureTracker(TrackerOptions(max_features=200, shift_retry=retry))
+    tracker.track(wide[:, 0:480].copy(), 0)
+    pair = tracker.track(wide[:, shift_px:shift_px + 480].copy(), 33_333_333)
+    return tracker, pair, np.abs(pair.pts_curr[:, 0] - pair.pts_prev[:, 0] + shift_px) < 1.0
+
+
+def test_a_turn_past_klts_reach_is_tracked_again_from_the_images_shift(wide):
+    # 150 px between consecutive frames (a head turn at 15 Hz moved 1280x720 images 150-240
+    # px): KLT from no motion keeps almost nothing; from the images' shift, the tracks that
+    # stay in view, each moved by the pan
+    tracker, pair, right = _turn(wide, 150, True)
+    assert right.sum() >= 100 and right.mean() > 0.95, (len(right), right.sum())
+    assert tracker.last_shift is not None and abs(tracker.last_shift[0] + 150.0) < 4.0
+    _, pair_off, right_off = _turn(wide, 150, False)
+    assert right_off.sum() < 30, right_off.sum()
+    # within KLT's reach nothing is tracked again: the same tracks, bit for bit
+    tracker, pair, _ = _turn(wide, 20, True)
+    _, pair_off, _ = _turn(wide, 20, False)
+    assert tracker.last_shift is None and len(pair.ids) > 100
+    assert np.array_equal(pair.pts_curr, pair_off.pts_curr)
+    assert np.array_equal(pair.ids, pair_off.ids)
+    # the pipeline says which frames were tracked from the shift (counted by the node and the
+    # replay)
+    pipe = OdometryPipeline(intrinsics(480, 360), None, 0.0, PipelineOptions(model="gs"))
+    results = [pipe.process(k * 33_333_333, wide[:, x:x + 480].copy())
+               for k, x in enumerate((0, 150, 160))]
+    assert [r.image_shift is not None for r in results] == [False, True, False]
+    assert abs(results[1].image_shift[0] + 150.0) < 4.0
 
 
 def test_tracker_redetects_when_tracks_are_lost(textured):
