@@ -35,6 +35,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--resolution", default="1280x720")
     p.add_argument("--frames", type=int, default=60, help="frames per rate")
     p.add_argument("--motion", default="vehicle")
+    p.add_argument("--motion-at-rate", action="store_true",
+                   help="sample the motion at each input rate, as a camera at that rate sees it "
+                        "(at 15 Hz twice the motion per frame of 30 Hz); default: the motion's "
+                        "own 30 Hz frames, played at the input rate (the README's tables "
+                        "before the thirty-third session)")
     p.add_argument("--json", default=None, help="also write the results here")
     p.add_argument("--node-pid", type=int, default=None,
                    help="the node's process id (default: the process running rsvo_node)")
@@ -58,19 +63,29 @@ def main(argv: list[str] | None = None) -> int:
 
     from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 
-    renderer = SequenceRenderer(SynthConfig(frames=args.frames, motion=args.motion, width=w,
-                                            height=h))  # fmt: skip
-    images = [f.image.tobytes() for f in renderer]  # render first: publishing must keep time
+    def render(rate: float | None):
+        """The frames' bytes and ground-truth poses, the motion sampled at ``rate`` (None: its
+        own 30 Hz), and the camera matrix; rendered before publishing, which must keep time."""
+        renderer = SequenceRenderer(SynthConfig(frames=args.frames, motion=args.motion, width=w,
+                                                height=h, frame_rate=rate))  # fmt: skip
+        frames = list(renderer)
+        return [f.image.tobytes() for f in frames], [f.pose() for f in frames], renderer.K
+
+    rendered = None if args.motion_at_rate else render(None)
     rclpy.init()
     node = rclpy.create_node("rsvo_latency")
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     pub_img = node.create_publisher(Image, "/camera/image_raw", qos)
     pub_info = node.create_publisher(CameraInfo, "/camera/camera_info", qos)
     got: dict[int, float] = {}
-    node.create_subscription(
-        Odometry, "/rsvo/odom",
-        lambda m: got.setdefault(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
-                                 time.time()), qos)  # fmt: skip
+    poses: dict[int, np.ndarray] = {}
+
+    def on_odom(m):
+        stamp = m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+        got.setdefault(stamp, time.time())
+        poses[stamp] = pose_matrix(m.pose.pose)
+
+    node.create_subscription(Odometry, "/rsvo/odom", on_odom, qos)
     diag: dict[str, str] = {}
 
     def on_diag(m):
@@ -90,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.spin_once(node, timeout_sec=0.05)
     results = []
     for rate in args.rate:
+        images, truth, K = rendered or render(rate)
         got.clear()
+        poses.clear()
         sent = []
         counts0 = _frame_counts(diag)
         cpu0 = _cpu_seconds(pid)
@@ -103,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
             info = CameraInfo()
             info.header.stamp.sec, info.header.stamp.nanosec = ns // 10**9, ns % 10**9
             info.width, info.height = w, h
-            info.k = [float(x) for x in renderer.K.ravel()]
+            info.k = [float(x) for x in K.ravel()]
             img = Image()
             img.header = info.header
             img.height, img.width, img.encoding, img.step, img.data = h, w, "mono8", w, data
@@ -145,7 +162,10 @@ def main(argv: list[str] | None = None) -> int:
                # the frames whose delay makes the p95: where the slow stretch is
                "tail_frames": tail_frames(delays),
                # the node's own counts over this run (diagnostics): why frames are missing
-               "node_frames": {k: n - counts0.get(k, 0) for k, n in _frame_counts(diag).items()}}
+               "node_frames": {k: n - counts0.get(k, 0) for k, n in _frame_counts(diag).items()},
+               # the motion per frame: sampled at this rate, or the motion's own 30 Hz frames
+               "motion_rate_hz": rate if args.motion_at_rate else 30.0}
+        row.update(live_ate({s: truth[k] for k, s in enumerate(sent)}, poses))
         results.append(row)
         print(json.dumps(row))
     if args.json:
@@ -154,6 +174,32 @@ def main(argv: list[str] | None = None) -> int:
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
+
+
+def pose_matrix(pose) -> np.ndarray:
+    """A geometry_msgs/Pose as a 4x4 matrix."""
+    from scipy.spatial.transform import Rotation
+
+    q = pose.orientation
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    T[:3, 3] = pose.position.x, pose.position.y, pose.position.z
+    return T
+
+
+def live_ate(truth: dict[int, np.ndarray], odometry: dict[int, np.ndarray]) -> dict:
+    """``{"ate_m": ...}``: the RMSE ATE after Sim(3) alignment (evo, as the replay's) of the
+    odometry received against the ground truth of the frames sent (both by stamp), or
+    ``{"ate_m": None, "ate_error": why}`` where it cannot be computed (too few poses)."""
+    from rsvo_ros.tools.replay import accuracy
+
+    est = {s: T for s, T in odometry.items() if s in truth}
+    try:
+        if len(est) < 3:
+            raise ValueError(f"{len(est)} poses with ground truth")
+        return {"ate_m": accuracy({s: truth[s] for s in est}, est)["ate_m"]["rmse"]}
+    except Exception as exc:  # noqa: BLE001 - any evo failure is reported, not raised
+        return {"ate_m": None, "ate_error": f"{type(exc).__name__}: {exc}"}
 
 
 def tail_frames(delays_ms: dict[int, float], share: float = 0.05) -> list[list[float]]:
@@ -193,8 +239,8 @@ def summary_table(rows: list[dict]) -> str:
 
     lines = ["| resolution | rate | Fast DDS profile | tracking decimation | frames with odometry "
              "| delay median / p95 | image arrival (median) | node CPU | tracking / mapping / "
-             "publishing (median) | dropped / held | target |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "publishing (median) | dropped / held | motion per frame | ATE | target |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=key):
         frames = r["odometry"] / max(r["sent"], 1)
         target = TARGETS.get((r["resolution"], float(r["rate_hz"])))
@@ -220,7 +266,10 @@ def summary_table(rows: list[dict]) -> str:
             f"{r.get('image_delay_ms_median') or '-'} ms | {ms(cpu)} % | "
             f"{r.get('tracking_ms_median')} / "
             f"{r.get('mapping_ms_median')} / {r.get('publishing_ms_median')} ms | "
-            f"{nf.get('dropped', '-')} / {nf.get('held', '-')} | {'; '.join(verdict) or '-'} |")
+            f"{nf.get('dropped', '-')} / {nf.get('held', '-')} | "
+            f"{r.get('motion_rate_hz', 30.0):g} Hz | "
+            f"{'-' if r.get('ate_m') is None else format(r['ate_m'], '.3f') + ' m'} | "
+            f"{'; '.join(verdict) or '-'} |")
     return "\n".join(lines)
 
 

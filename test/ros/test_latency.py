@@ -2,8 +2,19 @@
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
+
+from rsvo_ros.core.geometry import so3_exp
 from rsvo_ros.ros.dds import LARGE_IMAGES_PROFILE, PROFILE_ENV
-from rsvo_ros.ros.latency import _frame_counts, dds_profile_name, summary_table, tail_frames
+from rsvo_ros.ros.latency import (
+    _frame_counts,
+    dds_profile_name,
+    live_ate,
+    pose_matrix,
+    summary_table,
+    tail_frames,
+)
 
 
 def test_frame_counts_come_from_the_nodes_diagnostics():
@@ -80,3 +91,59 @@ def test_the_tail_frames_are_the_slowest_twentieth_in_frame_order():
     assert tail_frames(delays) == [[40, 94.0], [41, 93.0], [42, 92.0], [43, 91.0], [44, 90.0]]
     assert tail_frames({3: 10.0, 5: 30.04}) == [[5, 30.0]]
     assert tail_frames({}) == []
+
+
+def test_the_live_ate_aligns_the_odometry_to_the_truth_by_sim3():
+    """The odometry received is judged as the replay's trajectory is: ATE after a Sim(3)
+    alignment, on the stamps it shares with the frames sent; too few poses are said."""
+    rng = np.random.default_rng(3)
+    truth = {}
+    for k in range(40):
+        T = np.eye(4)
+        T[:3, :3] = so3_exp(rng.normal(0.0, 0.2, 3))
+        T[:3, 3] = [0.05 * k, 0.01 * np.sin(k), 0.0]
+        truth[1000 + 33 * k] = T
+    # the same trajectory in another world frame and scale, one frame missing, one pose of a
+    # frame never sent
+    S = np.eye(4)
+    S[:3, :3] = so3_exp(np.array([0.1, -0.3, 0.2]))
+    S[:3, 3] = [1.0, 2.0, 3.0]
+    odom = {}
+    for s, T in truth.items():
+        E = S @ T
+        E[:3, 3] = 2.5 * E[:3, 3]
+        odom[s] = E
+    del odom[1000 + 33 * 7]
+    odom[5] = np.eye(4)
+    assert live_ate(truth, odom)["ate_m"] == pytest.approx(0.0, abs=1e-9)
+    off = dict(odom)
+    off[1000 + 33 * 20] = off[1000 + 33 * 20].copy()
+    off[1000 + 33 * 20][:3, 3] += [2.5, 0.0, 0.0]  # one pose 1 m off, in the truth's units
+    assert 0.05 < live_ate(truth, off)["ate_m"] < 0.3
+    few = live_ate(truth, {1000: np.eye(4)})
+    assert few["ate_m"] is None and "1 poses with ground truth" in few["ate_error"]
+
+
+def test_a_pose_message_becomes_its_matrix():
+    from geometry_msgs.msg import Pose
+
+    from rsvo_ros.core.geometry import quat_xyzw_from_matrix
+
+    R = so3_exp(np.array([0.3, -0.2, 0.1]))
+    q = quat_xyzw_from_matrix(R)
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = 1.0, -2.0, 0.5
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (
+        float(v) for v in q)
+    T = pose_matrix(pose)
+    assert np.allclose(T[:3, :3], R) and np.allclose(T[:3, 3], [1.0, -2.0, 0.5])
+
+
+def test_the_table_says_how_the_motion_was_sampled_and_the_live_ate():
+    old = _row("1280x720", 15.0, 300, 50.0)  # a row from before the fields: 30 Hz motion
+    new = _row("1280x720", 15.0, 300, 55.0, profile="large_images")
+    new.update(motion_rate_hz=15.0, ate_m=0.1234)
+    lines = summary_table([old, new]).splitlines()
+    assert "| motion per frame | ATE | target |" in lines[0]
+    assert "| 30 Hz | - | >= 98 % met" in lines[2]
+    assert "| 15 Hz | 0.123 m | >= 98 % met" in lines[3]
