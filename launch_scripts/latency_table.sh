@@ -12,8 +12,11 @@
 # RSVO_LATENCY_DECIMATIONS lists the node's tracking_decimation values to run each row with
 # (default "1"; e.g. "1 2 auto", auto: tracking_decimation_mode auto from full resolution:
 # README "Tracking at a reduced resolution"). RSVO_LATENCY_RESOLUTIONS lists the resolutions
-# (default "640x480 1280x720"). About 8 minutes per profile and decimation at both
-# resolutions; run it on an otherwise idle machine.
+# (default "640x480 1280x720"). RSVO_LATENCY_MOTION_AT_RATE=1 samples the walk at each rate,
+# as a camera at that rate sees it (the probe's --motion-at-rate: at 15 Hz twice the motion per
+# frame; each row then also has the live ATE); the default, 0, plays the walk's 30 Hz frames at
+# each rate, as every table before the thirty-third session did. About 8 minutes per profile
+# and decimation at both resolutions; run it on an otherwise idle machine.
 set -euo pipefail
 REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
@@ -23,6 +26,7 @@ OUT="${RSVO_LATENCY_OUTPUT:-$REPO_ROOT/results/latency}"
 FRAMES="${RSVO_LATENCY_FRAMES:-300}"
 PROFILES="${RSVO_LATENCY_DDS_PROFILES:-default}"
 DECIMATIONS="${RSVO_LATENCY_DECIMATIONS:-1}"
+MOTION_AT_RATE="${RSVO_LATENCY_MOTION_AT_RATE:-0}"
 RESOLUTIONS="${RSVO_LATENCY_RESOLUTIONS:-640x480 1280x720}"
 for res in $RESOLUTIONS; do
     case "$res" in
@@ -38,6 +42,12 @@ for decimation in $DECIMATIONS; do
            exit 2 ;;
     esac
 done
+case "$MOTION_AT_RATE" in
+    0) motion=() ;;
+    1) motion=(--motion-at-rate) ;;
+    *) echo "RSVO_LATENCY_MOTION_AT_RATE takes 0 and 1, got $MOTION_AT_RATE" >&2
+       exit 2 ;;
+esac
 for profile in $PROFILES; do
     case "$profile" in
         default | large_images) ;;
@@ -71,7 +81,7 @@ for res in $RESOLUTIONS; do
                     "${mode[@]}" > "$OUT/node_$run.log" 2>&1 &
                 node_pid=$!
                 python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" \
-                    --frames "$FRAMES" --motion walk --node-pid "$node_pid" \
+                    --frames "$FRAMES" --motion walk "${motion[@]}" --node-pid "$node_pid" \
                     --json "$OUT/latency_$run.json"
                 kill -INT "$node_pid"
                 wait "$node_pid" || true

@@ -188,17 +188,25 @@ def pose_matrix(pose) -> np.ndarray:
 
 
 def live_ate(truth: dict[int, np.ndarray], odometry: dict[int, np.ndarray]) -> dict:
-    """``{"ate_m": ...}``: the RMSE ATE after Sim(3) alignment (evo, as the replay's) of the
-    odometry received against the ground truth of the frames sent (both by stamp), or
-    ``{"ate_m": None, "ate_error": why}`` where it cannot be computed (too few poses)."""
-    from rsvo_ros.tools.replay import accuracy
+    """``{"ate_m": ...}``: the RMSE of the positions of the odometry received after a Sim(3)
+    alignment to the ground truth of the frames sent (both by stamp; evo's Umeyama alignment,
+    so the replay's ATE), or ``{"ate_m": None, "ate_error": why}`` where it cannot be computed
+    (too few or degenerate poses)."""
+    from evo.core.geometry import umeyama_alignment
 
-    est = {s: T for s, T in odometry.items() if s in truth}
+    stamps = sorted(s for s in odometry if s in truth)
     try:
-        if len(est) < 3:
-            raise ValueError(f"{len(est)} poses with ground truth")
-        return {"ate_m": accuracy({s: truth[s] for s in est}, est)["ate_m"]["rmse"]}
-    except Exception as exc:  # noqa: BLE001 - any evo failure is reported, not raised
+        if len(stamps) < 3:
+            raise ValueError(f"{len(stamps)} poses with ground truth")
+        est = np.array([odometry[s][:3, 3] for s in stamps]).T
+        ref = np.array([truth[s][:3, 3] for s in stamps]).T
+        R, t, c = umeyama_alignment(est, ref, with_scale=True)
+        err = c * R @ est + t[:, None] - ref
+        ate = float(np.sqrt(np.mean(np.sum(err**2, axis=0))))
+        if not np.isfinite(ate):
+            raise ValueError("not finite")
+        return {"ate_m": ate}
+    except Exception as exc:  # noqa: BLE001 - any alignment failure is reported, not raised
         return {"ate_m": None, "ate_error": f"{type(exc).__name__}: {exc}"}
 
 

@@ -159,6 +159,12 @@ def _walk(refind: bool, frames: int = 300, seed: int = 100,
     cfg = SynthConfig(frames=frames, motion="walk", severity=0.7, seed=seed)
     renderer = SequenceRenderer(cfg)
     options = PipelineOptions()
+    # KLT alone, as these walks were measured: the tracker's re-tracking from the images'
+    # shift (on by default since the thirty-third session) carries some tracks through the
+    # look-around and changes where the map is lost and re-found (seed 979: re-found at frames
+    # 172 and 180 instead of 166 and 180; seed 1016: five pair recoveries instead of three,
+    # ATE 0.076 m against 0.036); the paths these tests pin are the loss's
+    options.tracker.shift_retry = False
     if not refind:
         options.window.reloc_min_inliers = 0
     for name, value in window.items():
