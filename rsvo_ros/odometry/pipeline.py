@@ -185,9 +185,9 @@ class FrameResult:
     # previous image + offset``, and tracked in the previous image's grey levels; None: it did
     # not change (or the frame was not tracked)
     brightness_change: tuple[float, float] | None = None
-    # (dx, dy) px: KLT alone kept too few tracks (a turn past its reach) and the tracks were
-    # found again from the images' shift by phase correlation (TrackerOptions.shift_retry);
-    # None: KLT's own (or the frame was not tracked)
+    # (dx, dy), px at the tracking resolution: KLT alone kept too few tracks (a turn past its
+    # reach) and they were found again from the images' shift by phase correlation
+    # (TrackerOptions.shift_retry); None: KLT's own (or the frame was not tracked)
     image_shift: tuple[float, float] | None = None
     # line_delay auto: the first estimate came with this frame, and the trajectory's earlier
     # frames were processed again with it (PipelineOptions.line_delay_rerun_max_frames): their

@@ -64,7 +64,7 @@ PHOTOMETRIC_CLIPPED = (4, 251)  # grey levels at or beyond these are clipped (no
 PHOTOMETRIC_PATCH = 7  # px: the grey level of a tracked point is its patch's mean
 # Re-tracking from the image's global shift: a fast pan or head turn moves the image by more
 # than the pyramid's reach (at 15 Hz the walks' look-around moves it 150-240 px between frames
-# at 1280x720, and KLT kept 1-15 of 500 tracks). When KLT keeps less than RETRY_BELOW_SHARE of
+# at 1280x720, and KLT kept 1-18 of 500 tracks). When KLT keeps less than RETRY_BELOW_SHARE of
 # the tracks, the shift between the two images is measured by phase correlation on copies
 # averaged down to about GLOBAL_SHIFT_SIDE_PX on their longer side (0.5-0.7 ms), and if it is at
 # least half the KLT window, every track is tracked again from it; the attempt that keeps more
