@@ -68,15 +68,10 @@ PHOTOMETRIC_PATCH = 7  # px: the grey level of a tracked point is its patch's me
 # the tracks, the shift between the two images is measured by phase correlation on copies
 # averaged down to about GLOBAL_SHIFT_SIDE_PX on their longer side (0.5-0.7 ms), and if it is at
 # least half the KLT window, every track is tracked again from it; the attempt that keeps more
-# tracks is taken. While a turn goes on (the last image was re-tracked and the shift is at
-# least TURN_SHIFT_WINDOWS KLT windows) KLT starts from the shift first and from no motion only
-# if that keeps too few (a second KLT pass per frame of a turn cost the live node at 1280x720,
-# 30 Hz, frames and 10-27 ms of delay p95). Frames where
-# KLT keeps its tracks are tracked as before, bit for bit (README, "Re-tracking a fast turn from
-# the image's shift")
+# tracks is taken. Frames where KLT keeps its tracks are tracked as before, bit for bit (README,
+# "Re-tracking a fast turn from the image's shift")
 RETRY_BELOW_SHARE = 0.7
 GLOBAL_SHIFT_SIDE_PX = 320
-TURN_SHIFT_WINDOWS = 2.0
 
 
 def check_refine_window(px: int | None, name: str = "refine_window_px",
@@ -284,7 +279,6 @@ class FeatureTracker:
 
     def reset(self) -> None:
         self._prev_img = self._prev_full = None
-        self.last_shift = None
         self._pts = np.zeros((0, 2), np.float32)
         self._ids = np.zeros(0, np.int64)
         self._flow = np.zeros((0, 2), np.float32)
@@ -344,6 +338,7 @@ class FeatureTracker:
         o = self.options
         empty = TrackedPair(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64))
         self.last_photometric = None
+        self.last_shift = None
         dt = None
         if stamp_ns is not None and self._stamp_ns is not None:
             dt = (stamp_ns - self._stamp_ns) * 1e-9
@@ -354,18 +349,12 @@ class FeatureTracker:
             self._ids = np.zeros(0, np.int64)
             self._flow, self._flow_dt = np.zeros((0, 2), np.float32), None
             self._brightness_rate = None
-            self.last_shift = None
         else:
             guess = self._predicted_motion(dt)
-            turning = self.last_shift is not None  # the last image was re-tracked
-            self.last_shift = None
-            if o.shift_retry and turning:
-                p1f, good = self._track_turn(img, guess)
-            else:
-                rate = self._brightness_rate
-                p1f, good = self._track_photometric(img, guess)
-                if o.shift_retry and good.sum() < RETRY_BELOW_SHARE * len(good):
-                    p1f, good = self._retry_from_shift(img, p1f, good, rate)
+            rate = self._brightness_rate
+            p1f, good = self._track_photometric(img, guess)
+            if o.shift_retry and good.sum() < RETRY_BELOW_SHARE * len(good):
+                p1f, good = self._retry_from_shift(img, p1f, good, rate)
             pair = TrackedPair(self._pts[good].astype(float), p1f[good].astype(float),
                                self._ids[good].copy())  # fmt: skip
             self._flow = (p1f[good] - self._pts[good]).astype(np.float32)
@@ -471,59 +460,24 @@ class FeatureTracker:
         levels = np.percentile(x, [5.0, 95.0])
         return fit[0], fit[1], _changed(fit, levels), levels
 
-    def _from_shift(self, img: np.ndarray, shift: tuple[float, float]):
-        """KLT of every feature into ``img`` started from the image ``shift``."""
-        guess = np.tile(np.float32(shift), (len(self._pts), 1)).reshape(-1, 1, 2)
-        return self._track_photometric(img, guess)
-
     def _retry_from_shift(self, img: np.ndarray, p1f: np.ndarray, good: np.ndarray,
-                          rate: tuple[float, float] | None,
-                          shift: tuple[float, float] | None = None,
-                          ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                          rate: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray]:
         """KLT kept too few tracks into ``img``: track every feature again from the global
-        shift (``shift`` where it was measured, else :func:`global_shift`) if it is at least
+        shift between the previous image and ``img`` (:func:`global_shift`) if it is at least
         half the KLT window, with the brightness change ``rate`` the first attempt started
-        from; the attempt that keeps more tracks (the first on a tie), and :attr:`last_shift`
-        where it is the new one."""
-        if shift is None:
-            shift = global_shift(self._prev_img, img)
+        from; the attempt that keeps more tracks, and :attr:`last_shift` where it is the new
+        one."""
+        shift = global_shift(self._prev_img, img)
         if shift is None or np.hypot(*shift) < 0.5 * self.options.window_px:
             return p1f, good
         first = (p1f, good, self._brightness_rate, self.last_photometric)
         self._brightness_rate = rate
-        p1s, goods = self._from_shift(img, shift)
+        guess = np.tile(np.float32(shift), (len(self._pts), 1)).reshape(-1, 1, 2)
+        p1s, goods = self._track_photometric(img, guess)
         if goods.sum() <= good.sum():
             _, _, self._brightness_rate, self.last_photometric = first
             return p1f, good
-        self.last_shift = shift
-        return p1s, goods
-
-    def _track_turn(self, img: np.ndarray,
-                    guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """The last image was re-tracked: where the global shift is still at least
-        ``TURN_SHIFT_WINDOWS`` KLT windows (a turn goes on), KLT from it first and from
-        ``guess`` (no motion, or the flow prediction) only where it keeps too few tracks, of
-        two attempts the one that keeps more (the one from ``guess`` on a tie, as in
-        :meth:`_retry_from_shift`); a smaller shift: as any frame."""
-        rate = self._brightness_rate
-        shift = global_shift(self._prev_img, img)
-        if shift is None or np.hypot(*shift) < TURN_SHIFT_WINDOWS * self.options.window_px:
-            # the turn has slowed down: as any frame
-            p1f, good = self._track_photometric(img, guess)
-            if good.sum() < RETRY_BELOW_SHARE * len(good):
-                p1f, good = self._retry_from_shift(img, p1f, good, rate, shift)
-            return p1f, good
-        p1s, goods = self._from_shift(img, shift)
-        if goods.sum() >= RETRY_BELOW_SHARE * len(goods):
-            self.last_shift = shift
-            return p1s, goods
-        taken = (p1s, goods, self._brightness_rate, self.last_photometric)
-        self._brightness_rate = rate
-        p1f, good = self._track_photometric(img, guess)
-        if good.sum() >= goods.sum():
-            return p1f, good
-        p1s, goods, self._brightness_rate, self.last_photometric = taken
-        self.last_shift = shift
+        self.last_shift = (float(shift[0]), float(shift[1]))
         return p1s, goods
 
     def _predicted_motion(self, dt: float | None) -> np.ndarray | None:
