@@ -64,12 +64,15 @@ def main(argv: list[str] | None = None) -> int:
     from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 
     def render(rate: float | None):
-        """The frames' bytes and ground-truth poses, the motion sampled at ``rate`` (None: its
-        own 30 Hz), and the camera matrix; rendered before publishing, which must keep time."""
-        renderer = SequenceRenderer(SynthConfig(frames=args.frames, motion=args.motion, width=w,
-                                                height=h, frame_rate=rate))  # fmt: skip
+        """The frames' bytes and ground-truth positions, the motion sampled at ``rate`` (None:
+        its own rate), the camera matrix and the rate the motion was sampled at; rendered
+        before publishing, which must keep time."""
+        cfg = SynthConfig(frames=args.frames, motion=args.motion, width=w, height=h,
+                          frame_rate=rate)
+        renderer = SequenceRenderer(cfg)
         frames = list(renderer)
-        return [f.image.tobytes() for f in frames], [f.pose() for f in frames], renderer.K
+        return ([f.image.tobytes() for f in frames], [f.p_world_cam.copy() for f in frames],
+                renderer.K, cfg.rate_hz)
 
     rendered = None if args.motion_at_rate else render(None)
     rclpy.init()
@@ -78,12 +81,13 @@ def main(argv: list[str] | None = None) -> int:
     pub_img = node.create_publisher(Image, "/camera/image_raw", qos)
     pub_info = node.create_publisher(CameraInfo, "/camera/camera_info", qos)
     got: dict[int, float] = {}
-    poses: dict[int, np.ndarray] = {}
+    positions: dict[int, np.ndarray] = {}
 
     def on_odom(m):
         stamp = m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
         got.setdefault(stamp, time.time())
-        poses[stamp] = pose_matrix(m.pose.pose)
+        p = m.pose.pose.position
+        positions[stamp] = np.array([p.x, p.y, p.z])
 
     node.create_subscription(Odometry, "/rsvo/odom", on_odom, qos)
     diag: dict[str, str] = {}
@@ -105,9 +109,9 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.spin_once(node, timeout_sec=0.05)
     results = []
     for rate in args.rate:
-        images, truth, K = rendered or render(rate)
+        images, truth, K, motion_rate = rendered or render(rate)
         got.clear()
-        poses.clear()
+        positions.clear()
         sent = []
         counts0 = _frame_counts(diag)
         cpu0 = _cpu_seconds(pid)
@@ -163,9 +167,9 @@ def main(argv: list[str] | None = None) -> int:
                "tail_frames": tail_frames(delays),
                # the node's own counts over this run (diagnostics): why frames are missing
                "node_frames": {k: n - counts0.get(k, 0) for k, n in _frame_counts(diag).items()},
-               # the motion per frame: sampled at this rate, or the motion's own 30 Hz frames
-               "motion_rate_hz": rate if args.motion_at_rate else 30.0}
-        row.update(live_ate({s: truth[k] for k, s in enumerate(sent)}, poses))
+               # the motion per frame: sampled at this rate, or the motion's own frames
+               "motion_rate_hz": motion_rate}
+        row.update(live_ate({s: truth[k] for k, s in enumerate(sent)}, positions))
         results.append(row)
         print(json.dumps(row))
     if args.json:
@@ -176,30 +180,19 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def pose_matrix(pose) -> np.ndarray:
-    """A geometry_msgs/Pose as a 4x4 matrix."""
-    from scipy.spatial.transform import Rotation
-
-    q = pose.orientation
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    T[:3, 3] = pose.position.x, pose.position.y, pose.position.z
-    return T
-
-
 def live_ate(truth: dict[int, np.ndarray], odometry: dict[int, np.ndarray]) -> dict:
-    """``{"ate_m": ...}``: the RMSE of the positions of the odometry received after a Sim(3)
-    alignment to the ground truth of the frames sent (both by stamp; evo's Umeyama alignment,
-    so the replay's ATE), or ``{"ate_m": None, "ate_error": why}`` where it cannot be computed
-    (too few or degenerate poses)."""
+    """``{"ate_m": ...}``: the RMSE of the positions (3,) of the odometry received after a
+    Sim(3) alignment to the ground-truth positions of the frames sent (both by stamp; evo's
+    Umeyama alignment, so the replay's ATE), or ``{"ate_m": None, "ate_error": why}`` where it
+    cannot be computed (too few or degenerate poses)."""
     from evo.core.geometry import umeyama_alignment
 
     stamps = sorted(s for s in odometry if s in truth)
     try:
         if len(stamps) < 3:
             raise ValueError(f"{len(stamps)} poses with ground truth")
-        est = np.array([odometry[s][:3, 3] for s in stamps]).T
-        ref = np.array([truth[s][:3, 3] for s in stamps]).T
+        est = np.array([odometry[s] for s in stamps]).T
+        ref = np.array([truth[s] for s in stamps]).T
         R, t, c = umeyama_alignment(est, ref, with_scale=True)
         err = c * R @ est + t[:, None] - ref
         ate = float(np.sqrt(np.mean(np.sum(err**2, axis=0))))

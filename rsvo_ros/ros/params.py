@@ -42,6 +42,7 @@ from rsvo_ros.odometry.tracker import (
     MAX_REFINE_WINDOW_PX,
     MAX_WINDOW_PX,
     MIN_WINDOW_PX,
+    RETRY_BELOW_SHARE,
     refine_window_or_auto,
 )
 from rsvo_ros.ros.camera_file import load_camera_file
@@ -195,7 +196,8 @@ PARAMETERS = {
         "(counted in diagnostics as brightness_compensated; false: track the images as they "
         "are).")),
     "klt_shift_retry": (True, _bool(
-        "KLT: where it keeps less than 70 % of the tracks (a turn faster than its reach: at "
+        f"KLT: where it keeps less than {100 * RETRY_BELOW_SHARE:.0f} % of the tracks (a turn "
+        "faster than its reach: at "
         "15 Hz a quick head turn moves the image 150-240 px), measure the images' shift by "
         "phase correlation and track again from it, keeping the attempt with more tracks "
         "(counted in diagnostics as tracked_from_shift; false: KLT's own tracks only).")),

@@ -47,6 +47,7 @@ from rsvo_ros.odometry.tracker import (
     MAX_REFINE_WINDOW_PX,
     MAX_WINDOW_PX,
     MIN_WINDOW_PX,
+    RETRY_BELOW_SHARE,
     check_decimation,
     check_window,
     refine_window_or_auto,
@@ -1115,7 +1116,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="KLT: do not map an image whose brightness changed (auto exposure) into "
                         "the previous image's grey levels before tracking")
     p.add_argument("--no-klt-shift-retry", action="store_true",
-                   help="KLT: where it keeps less than 70 %% of the tracks, do not track them "
+                   help=f"KLT: where it keeps less than {100 * RETRY_BELOW_SHARE:.0f} %% of the "
+                        "tracks, do not track them "
                         "again from the images' shift (phase correlation)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
