@@ -52,6 +52,24 @@ def test_paced_run_steps_the_decimation_down_as_the_node_does(capsys):
     assert out["ate_m"] is not None or out["ate_error"]
 
 
+def test_paced_run_samples_the_motion_at_the_rate_and_tracks_with_klt_alone(capsys):
+    """--motion-at-rate renders the walk as a 15 Hz camera sees it (not the walk's 30 Hz
+    frames fed at 15 Hz), --no-klt-shift-retry turns the tracker's re-tracking off (no frame
+    re-tracked); the tracker's own time is reported and is part of each frame's."""
+    runs = {}
+    for flags in ([], ["--motion-at-rate", "--no-klt-shift-retry"]):
+        assert main(["--frames", "20", "--rate", "15", "--mapping", "inline",
+                     "--resolution", "320x240", *flags]) == 0
+        runs[bool(flags)] = json.loads(capsys.readouterr().out)
+    assert runs[False]["motion_rate_hz"] == 30.0 and runs[False]["klt_shift_retry"]
+    assert runs[True]["motion_rate_hz"] == 15.0 and not runs[True]["klt_shift_retry"]
+    assert runs[True]["frames_tracked_from_shift"] == 0
+    for out in runs.values():
+        assert 0 < out["track_ms_median"] <= out["track_ms_p95"]
+        assert out["track_ms_median"] <= out["frame_ms_median"]
+        assert 0 < out["track_s_total"] and sum(out["outcomes"].values()) == 20
+
+
 @pytest.mark.parametrize("args, message", [
     (["--decimation", "0"], "--decimation must be 1-4 or auto"),
     (["--decimation", "auto"], "--decimation auto needs --drop"),
