@@ -12,11 +12,13 @@
 # RSVO_LATENCY_DECIMATIONS lists the node's tracking_decimation values to run each row with
 # (default "1"; e.g. "1 2 auto", auto: tracking_decimation_mode auto from full resolution:
 # README "Tracking at a reduced resolution"). RSVO_LATENCY_RESOLUTIONS lists the resolutions
-# (default "640x480 1280x720"). RSVO_LATENCY_MOTION_AT_RATE=1 samples the walk at each rate,
-# as a camera at that rate sees it (the probe's --motion-at-rate: at 15 Hz twice the motion per
-# frame; each row then also has the live ATE); the default, 0, plays the walk's 30 Hz frames at
-# each rate, as every table before the thirty-third session did. About 8 minutes per profile
-# and decimation at both resolutions; run it on an otherwise idle machine.
+# (default "640x480 1280x720"). RSVO_LATENCY_MOTION_AT_RATE=1, the default since the
+# thirty-fourth session, samples the walk at each rate, as a camera at that rate sees it (the
+# probe's --motion-at-rate: at 15 Hz twice the motion per frame, at 10 Hz three times);
+# RSVO_LATENCY_MOTION_AT_RATE=0 plays the walk's 30 Hz frames at each rate (a slowed-down
+# walk), as every table before the thirty-fourth session did. Every row has the live ATE.
+# About 8 minutes per profile and decimation at both resolutions; run it on an otherwise idle
+# machine.
 set -euo pipefail
 REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$REPO_ROOT/launch_scripts/setup.sh" >/dev/null
@@ -26,7 +28,7 @@ OUT="${RSVO_LATENCY_OUTPUT:-$REPO_ROOT/results/latency}"
 FRAMES="${RSVO_LATENCY_FRAMES:-300}"
 PROFILES="${RSVO_LATENCY_DDS_PROFILES:-default}"
 DECIMATIONS="${RSVO_LATENCY_DECIMATIONS:-1}"
-MOTION_AT_RATE="${RSVO_LATENCY_MOTION_AT_RATE:-0}"
+MOTION_AT_RATE="${RSVO_LATENCY_MOTION_AT_RATE:-1}"
 RESOLUTIONS="${RSVO_LATENCY_RESOLUTIONS:-640x480 1280x720}"
 for res in $RESOLUTIONS; do
     case "$res" in
