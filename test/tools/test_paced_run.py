@@ -17,6 +17,10 @@ def test_paced_run_reports_ate_times_and_outcomes(capsys):
     assert sum(out["outcomes"].values()) == 40 and 0 < out["ate_m"] < 1.0
     assert 0 < out["frame_ms_median"] <= out["frame_ms_p95"]
     assert len(out["slow_frames"]) == 40  # every frame is slower than 0 ms
+    # index, frame ms, the tracker's and the window BA's part of it, outcome
+    for _, frame_ms, track_ms, ba_ms, _ in out["slow_frames"]:
+        assert 0 <= track_ms <= frame_ms + 0.2 and 0 <= ba_ms <= frame_ms + 0.2
+    assert sum(f[2] > 0 for f in out["slow_frames"]) >= 39  # every frame after the first
 
 
 def test_paced_run_drop_applies_the_nodes_newest_frame_policy(capsys):
