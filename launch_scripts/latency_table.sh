@@ -17,6 +17,8 @@
 # probe's --motion-at-rate: at 15 Hz twice the motion per frame, at 10 Hz three times);
 # RSVO_LATENCY_MOTION_AT_RATE=0 plays the walk's 30 Hz frames at each rate (a slowed-down
 # walk), as every table before the thirty-fourth session did. Every row has the live ATE.
+# RSVO_LATENCY_SEEDS lists the walks' seeds (default "0", every table so far): each row with
+# each in turn, since the live ATE of one walk scatters with the node's timing.
 # About 8 minutes per profile and decimation at both resolutions; run it on an otherwise idle
 # machine.
 set -euo pipefail
@@ -30,6 +32,13 @@ PROFILES="${RSVO_LATENCY_DDS_PROFILES:-default}"
 DECIMATIONS="${RSVO_LATENCY_DECIMATIONS:-1}"
 MOTION_AT_RATE="${RSVO_LATENCY_MOTION_AT_RATE:-1}"
 RESOLUTIONS="${RSVO_LATENCY_RESOLUTIONS:-640x480 1280x720}"
+SEEDS="${RSVO_LATENCY_SEEDS:-0}"
+for seed in $SEEDS; do
+    case "$seed" in
+        '' | *[!0-9]*) echo "RSVO_LATENCY_SEEDS takes non-negative integers, got $seed" >&2
+                       exit 2 ;;
+    esac
+done
 for res in $RESOLUTIONS; do
     case "$res" in
         [1-9]*x[1-9]*) ;;
@@ -73,21 +82,27 @@ for res in $RESOLUTIONS; do
                 unset FASTRTPS_DEFAULT_PROFILES_FILE
             fi
             for decimation in $DECIMATIONS; do
-                run="${res}_${rate}hz_${profile}_d${decimation}"
                 if [ "$decimation" = auto ]; then
                     mode=(-p tracking_decimation_mode:=auto -p tracking_decimation:=1)
                 else
                     mode=(-p tracking_decimation:="$decimation")
                 fi
-                rsvo_node --ros-args -p line_delay:="$ld" -p image_qos_reliability:=reliable \
-                    "${mode[@]}" > "$OUT/node_$run.log" 2>&1 &
-                node_pid=$!
-                python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" \
-                    --frames "$FRAMES" --motion walk "${motion[@]}" --node-pid "$node_pid" \
-                    --json "$OUT/latency_$run.json"
-                kill -INT "$node_pid"
-                wait "$node_pid" || true
-                results+=("$OUT/latency_$run.json")
+                for seed in $SEEDS; do
+                    run="${res}_${rate}hz_${profile}_d${decimation}"
+                    if [ "$seed" != 0 ]; then
+                        run="${run}_s${seed}"
+                    fi
+                    rsvo_node --ros-args -p line_delay:="$ld" \
+                        -p image_qos_reliability:=reliable "${mode[@]}" \
+                        > "$OUT/node_$run.log" 2>&1 &
+                    node_pid=$!
+                    python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" \
+                        --frames "$FRAMES" --motion walk "${motion[@]}" --seed "$seed" \
+                        --node-pid "$node_pid" --json "$OUT/latency_$run.json"
+                    kill -INT "$node_pid"
+                    wait "$node_pid" || true
+                    results+=("$OUT/latency_$run.json")
+                done
             done
         done
     done

@@ -10,8 +10,9 @@ diagnostics (tracking per frame, mapping per keyframe, publishing per frame, med
 CPU use (% of one core, from /proc; the node is found by name or ``--node-pid``), and the
 node's frame counters over the run (received, processed, dropped, held, skipped: why frames
 got no odometry), which frames got none (``missing_frames``) and which were the slowest
-twentieth (``tail_frames``, ``[frame, delay_ms]``: the delay p95's stretch). Start the node
-first, e.g. ``rsvo_node --ros-args -p line_delay:=5e-5``.
+twentieth (``tail_frames``, ``[frame, delay_ms]``: the delay p95's stretch), and the live ATE
+against the frames' ground truth (``ate_m``; ``--seed`` picks the rendered sequence, a row's
+``seed``). Start the node first, e.g. ``rsvo_node --ros-args -p line_delay:=5e-5``.
 
 ``--summary RESULT.json ...`` prints the results of earlier runs as the README's table, each
 row against issue 14's targets (``launch_scripts/latency_table.sh`` runs and summarises).
@@ -40,6 +41,9 @@ def main(argv: list[str] | None = None) -> int:
                         "(at 15 Hz twice the motion per frame of 30 Hz); default: the motion's "
                         "own 30 Hz frames, played at the input rate (the README's tables "
                         "before the thirty-third session)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="the rendered sequence's seed (rsvo_synth's; default 0, the one every "
+                        "table so far used)")
     p.add_argument("--json", default=None, help="also write the results here")
     p.add_argument("--node-pid", type=int, default=None,
                    help="the node's process id (default: the process running rsvo_node)")
@@ -68,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         its own rate), the camera matrix and the rate the motion was sampled at; rendered
         before publishing, which must keep time."""
         cfg = SynthConfig(frames=args.frames, motion=args.motion, width=w, height=h,
-                          frame_rate=rate)
+                          frame_rate=rate, seed=args.seed)
         renderer = SequenceRenderer(cfg)
         frames = list(renderer)
         return ([f.image.tobytes() for f in frames], [f.p_world_cam.copy() for f in frames],
@@ -168,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
                # the node's own counts over this run (diagnostics): why frames are missing
                "node_frames": {k: n - counts0.get(k, 0) for k, n in _frame_counts(diag).items()},
                # the motion per frame: sampled at this rate, or the motion's own frames
-               "motion_rate_hz": motion_rate}
+               "motion_rate_hz": motion_rate, "seed": args.seed}
         row.update(live_ate({s: truth[k] for k, s in enumerate(sent)}, positions))
         results.append(row)
         print(json.dumps(row))
@@ -226,6 +230,11 @@ def _decimation(row: dict) -> str:
     return f"auto (ended at {d})" if row.get("tracking_decimation_mode") == "auto" else str(d)
 
 
+def _seed(row: dict) -> str:
+    """The sequence's seed where it is not the default 0 (rows from before the field: 0)."""
+    return f" (seed {row['seed']})" if row.get("seed", 0) else ""
+
+
 def summary_table(rows: list[dict]) -> str:
     """The probe's result rows as a markdown table, sorted by resolution and rate, with each
     issue-14 target the row has and whether it was met."""
@@ -233,7 +242,7 @@ def summary_table(rows: list[dict]) -> str:
         w, h = (int(x) for x in r["resolution"].split("x"))
         return (w * h, r["rate_hz"], r.get("dds_profile", "default"),
                 r.get("tracking_decimation_mode", "fixed") == "auto",
-                r.get("tracking_decimation", 1))
+                r.get("tracking_decimation", 1), r.get("seed", 0))
 
     def ms(x):
         return "-" if x is None else f"{x:.0f}"
@@ -268,7 +277,7 @@ def summary_table(rows: list[dict]) -> str:
             f"{r.get('tracking_ms_median')} / "
             f"{r.get('mapping_ms_median')} / {r.get('publishing_ms_median')} ms | "
             f"{nf.get('dropped', '-')} / {nf.get('held', '-')} | "
-            f"{r.get('motion_rate_hz', 30.0):g} Hz | "
+            f"{r.get('motion_rate_hz', 30.0):g} Hz{_seed(r)} | "
             f"{'-' if r.get('ate_m') is None else format(r['ate_m'], '.3f') + ' m'} | "
             f"{'; '.join(verdict) or '-'} |")
     return "\n".join(lines)

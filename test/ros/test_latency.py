@@ -119,3 +119,20 @@ def test_the_table_says_how_the_motion_was_sampled_and_the_live_ate():
     assert "| motion per frame | ATE | target |" in lines[0]
     assert "| 30 Hz | - | >= 98 % met" in lines[2]
     assert "| 15 Hz | 0.123 m | >= 98 % met" in lines[3]
+
+
+def test_rows_of_each_walk_seed_sit_side_by_side_and_say_their_seed():
+    """RSVO_LATENCY_SEEDS runs each row on several walks: the rows sort by seed within a
+    setting, and a seed other than the default 0 is named beside the motion (rows from before
+    the field are seed 0)."""
+    rows = []
+    for seed in (7, 0, None):
+        r = _row("1280x720", 30.0, 290, 60.0)
+        r.update(motion_rate_hz=30.0, ate_m=0.1)
+        if seed is not None:
+            r["seed"] = seed
+        rows.append(r)
+    lines = summary_table(rows).splitlines()[2:]
+    assert [line.count("(seed 7)") for line in lines] == [0, 0, 1]
+    assert all("| 30 Hz | 0.100 m |" in line for line in lines[:2])
+    assert "| 30 Hz (seed 7) | 0.100 m |" in lines[2]
