@@ -57,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
                 rows.extend(json.load(f))
         print(summary_table(rows))
         return 0
+    if args.seed < 0:
+        p.error(f"--seed must be a non-negative integer, got {args.seed}")
     w, h = (int(x) for x in args.resolution.split("x"))
 
     import rclpy

@@ -136,3 +136,11 @@ def test_rows_of_each_walk_seed_sit_side_by_side_and_say_their_seed():
     assert [line.count("(seed 7)") for line in lines] == [0, 0, 1]
     assert all("| 30 Hz | 0.100 m |" in line for line in lines[:2])
     assert "| 30 Hz (seed 7) | 0.100 m |" in lines[2]
+
+
+def test_the_probe_rejects_a_negative_seed_before_it_starts(capsys):
+    from rsvo_ros.ros.latency import main
+
+    with pytest.raises(SystemExit):
+        main(["--seed", "-1"])
+    assert "--seed must be a non-negative integer, got -1" in capsys.readouterr().err
