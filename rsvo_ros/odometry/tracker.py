@@ -477,7 +477,7 @@ class FeatureTracker:
         if goods.sum() <= good.sum():
             _, _, self._brightness_rate, self.last_photometric = first
             return p1f, good
-        self.last_shift = (float(shift[0]), float(shift[1]))
+        self.last_shift = shift
         return p1s, goods
 
     def _predicted_motion(self, dt: float | None) -> np.ndarray | None:

@@ -1117,8 +1117,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the previous image's grey levels before tracking")
     p.add_argument("--no-klt-shift-retry", action="store_true",
                    help=f"KLT: where it keeps less than {100 * RETRY_BELOW_SHARE:.0f} %% of the "
-                        "tracks, do not track them "
-                        "again from the images' shift (phase correlation)")
+                        "tracks, do not track them again from the images' shift (phase "
+                        "correlation)")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier replay")
     p.add_argument("--no-progress", action="store_true")
     return p
