@@ -179,7 +179,10 @@ class FrameResult:
     tracking: str = "tracking"
     velocity: tuple[np.ndarray, np.ndarray] | None = None  # window: (w, v) in the row-0 frame
     time_reset: bool = False  # time jumped back: this frame starts a new trajectory
-    mapping_ms: float = 0.0  # window: the part of time_ms spent in the window BA (keyframes)
+    mapping_ms: float = 0.0  # window: the part of time_ms spent in a window BA (keyframes)
+    # window, async mapping: a window BA that ran on the mapping thread and was picked up at
+    # this frame, its time (not part of time_ms: it ran beside the tracking)
+    background_mapping_ms: float = 0.0
     refound: bool = False  # window: this frame re-found a lost map by its landmarks' descriptors
     # (gain, offset): the tracker found the brightness changed (auto exposure), ``image ~ gain x
     # previous image + offset``, and tracked in the previous image's grey levels; None: it did
@@ -798,6 +801,7 @@ class OdometryPipeline:
         if out.status == "held" and interval is not None and len(pair.ids) \
                 < self.options.min_tracks:
             reason = f"lost tracking ({len(pair.ids)} tracks): {reason}"
+        ba_ms = out.ba.time_ms if out.ba is not None else 0.0
         drawn = {}
         if out.inlier_ids is not None and out.status == "posed":
             drawn = {"inliers": np.isin(pair.ids, out.inlier_ids),
@@ -806,7 +810,8 @@ class OdometryPipeline:
                       inlier_ratio=out.inliers / max(out.tracked, 1),
                       pts_prev=pair.pts_prev, pts_curr=pair.pts_curr, **drawn,
                       keyframe=out.keyframe, velocity=velocity,
-                      mapping_ms=out.ba.time_ms if out.ba is not None else 0.0,
+                      mapping_ms=ba_ms if not out.ba_background else 0.0,
+                      background_mapping_ms=ba_ms if out.ba_background else 0.0,
                       refound=out.refound)  # fmt: skip
 
 

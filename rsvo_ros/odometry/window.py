@@ -189,6 +189,9 @@ class WindowResult:
     hessian: np.ndarray | None = None  # (15, 15) of tracking, px^-2 units
     sigma2: float = 1.0  # residual variance of tracking (px^2)
     ba: BAReport | None = None
+    # ``ba`` ran on the mapping thread (async mapping) and was picked up at this frame: its time
+    # was not spent in this frame's tracking; False: inline, in this frame (or no BA)
+    ba_background: bool = False
     # a window BA moved a frame (this one inline, or a keyframe whose mapping finished since
     # the last frame): its state (before, after); the pipeline keeps its published odometry
     # continuous across that correction
@@ -388,7 +391,7 @@ class WindowOdometry:
         # the refined map from the background came first, then anything inline
         result.ba_moved = [moved for moved, _ in self._picked] + result.ba_moved
         if result.ba is None and self._picked:
-            result.ba = self._picked[-1][1]
+            result.ba, result.ba_background = self._picked[-1][1], True
         if result.status == "posed" and result.state is not None:
             if self.calibrator is not None:
                 self.calibrator.add_pose(result.state)
@@ -422,6 +425,11 @@ class WindowOdometry:
         for st in (self._last, self._before):
             if st is not None and np.isfinite(D).all():  # never a NaN pose
                 st.R, st.p = D[:3, :3] @ st.R, D[:3, :3] @ st.p + D[:3, 3]
+        if self._last is not None and self._last.stamp_ns == after.stamp_ns:
+            # the keyframe is still the last tracked frame: the next frame starts from its
+            # refined state, turn rate and velocity too, as after inline mapping (with the
+            # velocities tracking gave it, async walks at 15 Hz came out 3-5x worse)
+            self._last = after.copy()
         self._picked.append(((before, after), report))
 
     def _start(self, stamp_ns: int, obs: Observations) -> WindowResult:

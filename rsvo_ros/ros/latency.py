@@ -47,6 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None, help="also write the results here")
     p.add_argument("--node-pid", type=int, default=None,
                    help="the node's process id (default: the process running rsvo_node)")
+    p.add_argument("--wait", type=float, default=120.0, metavar="S",
+                   help="seconds to wait for the node to subscribe to the images and advertise "
+                        "its odometry before giving up (default 120: a node's first start "
+                        "after an install compiles its solver, about a minute)")
     p.add_argument("--summary", nargs="+", metavar="RESULT_JSON", default=None,
                    help="print earlier runs' --json files as a markdown table and exit")
     args = p.parse_args(argv)
@@ -59,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.seed < 0:
         p.error(f"--seed must be a non-negative integer, got {args.seed}")
+    if not args.wait > 0:
+        p.error(f"--wait must be a positive number of seconds, got {args.wait}")
     w, h = (int(x) for x in args.resolution.split("x"))
 
     import rclpy
@@ -106,10 +112,18 @@ def main(argv: list[str] | None = None) -> int:
 
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     pid = args.node_pid or _find_pid("rsvo_node")
-    t_end = time.monotonic() + 30
+    t_end = time.monotonic() + args.wait
     while time.monotonic() < t_end and (pub_img.get_subscription_count() == 0
                                         or node.count_publishers("/rsvo/odom") == 0):
         rclpy.spin_once(node, timeout_sec=0.05)
+    if pub_img.get_subscription_count() == 0 or node.count_publishers("/rsvo/odom") == 0:
+        # frames sent to nobody would be counted as frames the node missed
+        print(f"no node subscribed to /camera/image_raw and advertised /rsvo/odom within "
+              f"{args.wait:g} s (ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', 'unset')}): "
+              f"start rsvo_node first, in the same ROS domain", file=sys.stderr)
+        node.destroy_node()
+        rclpy.try_shutdown()
+        return 2
     t_settle = time.monotonic() + 2.0
     while time.monotonic() < t_settle:
         rclpy.spin_once(node, timeout_sec=0.05)

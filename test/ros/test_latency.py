@@ -144,3 +144,24 @@ def test_the_probe_rejects_a_negative_seed_before_it_starts(capsys):
     with pytest.raises(SystemExit):
         main(["--seed", "-1"])
     assert "--seed must be a non-negative integer, got -1" in capsys.readouterr().err
+
+
+def test_the_probe_stops_with_a_clear_message_when_no_node_listens(tmp_path):
+    """Frames sent before the node subscribes would be counted as frames it missed (a node
+    compiling its solver on its first start took 57 s, past the old fixed 30 s wait): without
+    a node the probe gives up after --wait with exit 2, names what to do, and writes no
+    result."""
+    import subprocess
+    import sys
+
+    from conftest import ros_domain, ros_test_env
+
+    out = tmp_path / "latency.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "rsvo_ros.ros.latency", "--frames", "3", "--resolution",
+         "64x48", "--wait", "2", "--json", str(out)],
+        env=ros_test_env(ros_domain(offset=7)), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert "no node subscribed to /camera/image_raw" in proc.stderr
+    assert "start rsvo_node first" in proc.stderr
+    assert not out.exists()
