@@ -112,11 +112,13 @@ def main(argv: list[str] | None = None) -> int:
 
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     pid = args.node_pid or _find_pid("rsvo_node")
+    def node_ready() -> bool:
+        return pub_img.get_subscription_count() > 0 and node.count_publishers("/rsvo/odom") > 0
+
     t_end = time.monotonic() + args.wait
-    while time.monotonic() < t_end and (pub_img.get_subscription_count() == 0
-                                        or node.count_publishers("/rsvo/odom") == 0):
+    while time.monotonic() < t_end and not node_ready():
         rclpy.spin_once(node, timeout_sec=0.05)
-    if pub_img.get_subscription_count() == 0 or node.count_publishers("/rsvo/odom") == 0:
+    if not node_ready():
         # frames sent to nobody would be counted as frames the node missed
         print(f"no node subscribed to /camera/image_raw and advertised /rsvo/odom within "
               f"{args.wait:g} s (ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', 'unset')}): "

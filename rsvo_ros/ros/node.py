@@ -444,8 +444,9 @@ class RsvoNode(Node):
         self._log_refinement()
         # tracking: the frame's time without an inline window BA (an async one ran beside it)
         self._track_ms.append(res.time_ms - res.mapping_ms)
-        if max(res.mapping_ms, res.background_mapping_ms) > 0:
-            self._map_ms.append(max(res.mapping_ms, res.background_mapping_ms))
+        ba_ms = max(res.mapping_ms, res.background_mapping_ms)  # inline or background
+        if ba_ms > 0:
+            self._map_ms.append(ba_ms)
         self.stats["processed"] += 1
         if res.time_reset:
             self.stats["time_resets"] += 1
