@@ -53,6 +53,9 @@ FOCAL_REF_PX = 1000.0  # pixel thresholds below are given at this focal length a
 REINIT_PARALLAX_FACTOR = 2.0
 SHEAR_FRAMES_KEPT = 900  # tracked frames kept for the map's shear (30 s at 30 Hz)
 REFOUND_REASON = "re-found the map"  # a frame's reason where descriptors found the map again
+# a frame's reason where the last keyframe shared too few tracks for a pair and the frame was
+# recovered from the last tracked frame, made a keyframe late
+LATE_RECOVERY_REASON = "recovered with the pair estimator from the last tracked frame"
 
 
 @dataclass
@@ -251,6 +254,10 @@ class WindowOdometry:
         self._err_medians: deque = deque(maxlen=15)  # their median reprojection errors (px)
         self._err_median = np.nan  # the last motion-only refinement's
         self._weak = False  # the last frame's tracking was weak (async: map synchronously)
+        # the last frame tracked against the map, if it did not become a keyframe: (its state
+        # as tracked, observations, outlier track ids); a pair recovery whose keyframe shares
+        # too few tracks with the lost frame makes it a keyframe late and pairs with it
+        self._last_tracked: tuple[FrameState, Observations, np.ndarray] | None = None
         self._hints: dict[int, np.ndarray] = {}  # stamp -> the chain's row-0 pose
         # the last tracked frames' (stamp, R, w): the map's shear (shear_from_turns)
         self._rates: deque = deque(maxlen=SHEAR_FRAMES_KEPT)
@@ -601,6 +608,8 @@ class WindowOdometry:
                 result.ba_moved = [(before, state.copy())]
         self._lost = 0
         self._speeds.append(float(np.linalg.norm(state.v)))
+        self._last_tracked = None if result.keyframe else \
+            (state.copy(), obs, obs.ids[ib][~inl])
         self._before, self._last = self._last, state.copy()
         return result
 
@@ -664,28 +673,17 @@ class WindowOdometry:
         # would be placed by the last speed alone, and it never comes back): it starts over
         dead = len(self.map.landmarks) < self.options.min_landmarks
         if last_kf is not None and not dead:
-            dt = (stamp_ns - last_kf.state.stamp_ns) * 1e-9
-            res, ia, ib = self._pair(last_kf.obs, obs, dt, self.seed + self._next_kf)
-            if res is not None:
-                scale = self._pair_scale(last_kf, res, ia, dt)
-                if scale is not None:
-                    state, _, vel_cur = self._states_from_pair(res, last_kf.state, stamp_ns,
-                                                               scale)
-                    kf = self._new_keyframe(state, obs, vel_cur)
-                    before = state.copy()
-                    report = self.map_keyframe(kf)
-                    state = kf.state.copy() if kf in self.map.keyframes else state
-                    self._before, self._last = self._last, state.copy()
-                    self._lost = 0
-                    self._tracked_at_kf = len(self.map.landmarks)
-                    self._make_provisional(stamp_ns)
-                    paired = obs.ids[ib]
-                    return WindowResult("posed", "recovered with the pair estimator", state,
-                                        inliers=res.num_inliers, tracked=len(ib),
-                                        keyframe=True, ba=report,
-                                        ba_moved=[(before, state.copy())],
-                                        inlier_ids=paired[res.inliers],
-                                        outlier_ids=paired[~res.inliers])  # fmt: skip
+            found = self._pair_recovery(last_kf, stamp_ns, obs)
+            late = self._late_keyframe(last_kf) if found is None else None
+            if late is not None:
+                kf, moved = late
+                found = self._pair_recovery(kf, stamp_ns, obs)
+                if found is not None:
+                    found.reason = LATE_RECOVERY_REASON
+                    # the late keyframe's BA moved that (published) frame first
+                    found.ba_moved = [moved] + found.ba_moved
+            if found is not None:
+                return found
         self._lost += 1
         held = self._last.copy()
         if self._lost >= self.options.lost_frames_to_reset or dead:
@@ -702,6 +700,55 @@ class WindowOdometry:
             started.reason = "lost: too few map points and no pair pose; a new map starts"
             return started
         return WindowResult("held", "lost: too few map points and no pair pose", held)
+
+    def _pair_recovery(self, kf: KeyFrame, stamp_ns: int,
+                       obs: Observations) -> WindowResult | None:  # fmt: skip
+        """The frame posed by the pair estimator from keyframe ``kf``, scaled by the landmarks
+        they share, and made a keyframe (mapped inline); None without a pair pose."""
+        dt = (stamp_ns - kf.state.stamp_ns) * 1e-9
+        res, ia, ib = self._pair(kf.obs, obs, dt, self.seed + self._next_kf)
+        if res is None:
+            return None
+        scale = self._pair_scale(kf, res, ia, dt)
+        if scale is None:
+            return None
+        state, _, vel_cur = self._states_from_pair(res, kf.state, stamp_ns, scale)
+        new_kf = self._new_keyframe(state, obs, vel_cur)
+        before = state.copy()
+        report = self.map_keyframe(new_kf)
+        state = new_kf.state.copy() if new_kf in self.map.keyframes else state
+        self._before, self._last = self._last, state.copy()
+        self._last_tracked = None
+        self._lost = 0
+        self._tracked_at_kf = len(self.map.landmarks)
+        self._make_provisional(stamp_ns)
+        paired = obs.ids[ib]
+        return WindowResult("posed", "recovered with the pair estimator", state,
+                            inliers=res.num_inliers, tracked=len(ib), keyframe=True,
+                            ba=report, ba_moved=[(before, state.copy())],
+                            inlier_ids=paired[res.inliers],
+                            outlier_ids=paired[~res.inliers])  # fmt: skip
+
+    def _late_keyframe(self, last_kf: KeyFrame) -> tuple[KeyFrame, tuple] | None:
+        """The last frame tracked against the map after ``last_kf`` made a keyframe now and
+        mapped inline (a fast turn can leave the last keyframe too few tracks for a pair
+        while the frame before the loss still shares most of its tracks), with its state
+        before and after that BA; None if there is no such frame."""
+        kept, self._last_tracked = self._last_tracked, None
+        if kept is None or self._last is None:
+            return None
+        state, obs, rejected = kept
+        if state.stamp_ns != self._last.stamp_ns or state.stamp_ns <= last_kf.state.stamp_ns:
+            return None
+        kf = self._new_keyframe(self._last, obs, (self._last.w.copy(), self._last.v.copy()))
+        kf.before = self._before.copy() if self._before is not None else None
+        kf.rejected.update(int(t) for t in rejected)
+        before = self._last.copy()
+        self.map_keyframe(kf)
+        if kf not in self.map.keyframes:
+            return None
+        self._last = kf.state.copy()
+        return kf, (before, kf.state.copy())
 
     def _pair_scale(self, kf: KeyFrame, res, ia: np.ndarray, dt: float) -> float | None:
         """Map units per unit of the pair's ``|t|`` from the depths of the landmarks the pair
