@@ -258,6 +258,9 @@ class WindowOdometry:
         # as tracked, observations, outlier track ids); a pair recovery whose keyframe shares
         # too few tracks with the lost frame makes it a keyframe late and pairs with it
         self._last_tracked: tuple[FrameState, Observations, np.ndarray] | None = None
+        # BA corrections reported with frames that were not posed (the pipeline moves the
+        # published odometry at posed frames only): handed on with the next posed frame
+        self._moved_unposted: list[tuple[FrameState, FrameState]] = []
         self._hints: dict[int, np.ndarray] = {}  # stamp -> the chain's row-0 pose
         # the last tracked frames' (stamp, R, w): the map's shear (shear_from_turns)
         self._rates: deque = deque(maxlen=SHEAR_FRAMES_KEPT)
@@ -397,6 +400,13 @@ class WindowOdometry:
             result = self._recover(stamp_ns, obs)
         # the refined map from the background came first, then anything inline
         result.ba_moved = [moved for moved, _ in self._picked] + result.ba_moved
+        if result.status == "posed":
+            result.ba_moved = self._moved_unposted + result.ba_moved
+            self._moved_unposted = []
+        elif self.initialising:  # a new map starts: the old map's corrections do not apply
+            self._moved_unposted = []
+        else:
+            self._moved_unposted += result.ba_moved
         if result.ba is None and self._picked:
             result.ba, result.ba_background = self._picked[-1][1], True
         if result.status == "posed" and result.state is not None:
@@ -672,16 +682,17 @@ class WindowOdometry:
         # a map left with fewer points than tracking needs is not recovered into (its keyframes
         # would be placed by the last speed alone, and it never comes back): it starts over
         dead = len(self.map.landmarks) < self.options.min_landmarks
+        late_moved: list[tuple[FrameState, FrameState]] = []
         if last_kf is not None and not dead:
             found = self._pair_recovery(last_kf, stamp_ns, obs)
             late = self._late_keyframe(last_kf) if found is None else None
             if late is not None:
-                kf, moved = late
+                kf, late_moved = late
+                late_moved = [late_moved]  # that (published) frame moved first
                 found = self._pair_recovery(kf, stamp_ns, obs)
                 if found is not None:
                     found.reason = LATE_RECOVERY_REASON
-                    # the late keyframe's BA moved that (published) frame first
-                    found.ba_moved = [moved] + found.ba_moved
+                    found.ba_moved = late_moved + found.ba_moved
             if found is not None:
                 return found
         self._lost += 1
@@ -699,7 +710,8 @@ class WindowOdometry:
             started = self._start(stamp_ns, obs)
             started.reason = "lost: too few map points and no pair pose; a new map starts"
             return started
-        return WindowResult("held", "lost: too few map points and no pair pose", held)
+        return WindowResult("held", "lost: too few map points and no pair pose", held,
+                            ba_moved=late_moved)  # fmt: skip
 
     def _pair_recovery(self, kf: KeyFrame, stamp_ns: int,
                        obs: Observations) -> WindowResult | None:  # fmt: skip

@@ -440,21 +440,25 @@ def test_a_weak_keyframe_is_mapped_on_the_tracking_path_and_the_next_frame_track
     assert accuracy(gt, est)["ate_m"]["rmse"] < 0.01  # the map kept its accuracy
 
 
-def test_a_lost_frame_is_recovered_from_the_last_tracked_frame_made_a_keyframe_late():
+@pytest.mark.parametrize("unpaired", [0, 1])
+def test_a_lost_frame_is_recovered_from_the_last_tracked_frame_made_a_keyframe_late(unpaired):
     """A fast turn: for a few frames no keyframe is made (the look-around's small parallax; a
     busy mapper does the same), the tracks are found again under new ids, and the frame before
     the loss still tracks 25 map points. The next frame sees no map point and shares no track
     with the last keyframe, so the pair estimator from that keyframe has nothing to pair; the
     last tracked frame (which shares all its tracks) is made a keyframe late and the frame is
     recovered from it. Before, the frame was held and the map started over five frames later
-    (an async 15 Hz walk, seed 3: ATE 2.2 m against 0.51 m mapped inline)."""
+    (an async 15 Hz walk, seed 3: ATE 2.2 m against 0.51 m mapped inline). ``unpaired``: that
+    many frames after the loss share no track with anything (held), and the late keyframe's
+    BA correction is handed on with the next posed frame (the pipeline moves the published
+    odometry at posed frames only)."""
     tau, turn = 3e-5, 25
     K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
     states, X = _walk_states(turn + 8, tau)
     rng = np.random.default_rng(4)
     wo = WindowOdometry(K, tau)
     defaults = WindowOptions()
-    est, gt, reasons = {}, {}, {}
+    est, gt, results = {}, {}, {}
     for k, st in enumerate(states):
         Xc = (X - st.p) @ st.R
         vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
@@ -465,26 +469,35 @@ def test_a_lost_frame_is_recovered_from_the_last_tracked_frame_made_a_keyframe_l
         if k == turn:  # ... but for 25 map points that kept theirs
             keep = np.flatnonzero(np.isin(vis, wo.map.points()[0]))[:25]
             ids[keep] = vis[keep]
+        if turn < k <= turn + unpaired:
+            ids = vis + 100_000 * (k - turn + 1)  # tracks of their own
         no_keyframes = turn - 2 <= k <= turn
         wo.options.keyframe_track_ratio = 0.0 if no_keyframes else defaults.keyframe_track_ratio
         wo.options.keyframe_parallax_px = np.inf if no_keyframes else defaults.keyframe_parallax_px
         wo.options.keyframe_max_interval_s = np.inf if no_keyframes else \
             defaults.keyframe_max_interval_s
-        res = wo.track(st.stamp_ns, _obs_of(st, X[vis], ids, tau, rng, 0.3))
-        reasons[k] = (res.status, res.reason, res.keyframe)
-        if k == turn + 1:  # the late keyframe's BA moved that frame: the pipeline follows
-            assert [b.stamp_ns for b, _ in res.ba_moved] == [states[turn].stamp_ns, st.stamp_ns]
+        results[k] = res = wo.track(st.stamp_ns, _obs_of(st, X[vis], ids, tau, rng, 0.3))
         gt[st.stamp_ns] = st.pose(-180.0 * tau)
         if res.status == "posed":
             est[st.stamp_ns] = wo.row0_pose(res.state)
+    reasons = {k: (r.status, r.reason, r.keyframe) for k, r in results.items()}
     assert reasons[turn][:2] == ("posed", "") and not reasons[turn][2]  # tracked, 25 points
-    status, reason, keyframe = reasons[turn + 1]
+    back = turn + 1 + unpaired  # the first frame posed again
+    status, reason, keyframe = reasons[back]
     assert status == "posed" and keyframe, reason
-    assert reason == LATE_RECOVERY_REASON
+    # the late keyframe's BA moved that (published) frame first: the pipeline follows
+    moved = [b.stamp_ns for b, _ in results[back].ba_moved]
+    assert moved == [states[turn].stamp_ns, states[back].stamp_ns]
+    if unpaired:
+        assert all(reasons[k][0] == "held" for k in range(turn + 1, back)), reasons
+        assert reason == "recovered with the pair estimator"  # from the late keyframe, now last
+    else:
+        assert reason == LATE_RECOVERY_REASON
     stamps = [kf.state.stamp_ns for kf in wo.map.keyframes]
-    assert states[turn].stamp_ns in stamps and states[turn + 1].stamp_ns in stamps
-    assert all(reasons[k][0] == "posed" for k in range(turn + 1, len(states))), reasons
-    assert accuracy(gt, est)["ate_m"]["rmse"] < 0.02
+    assert states[turn].stamp_ns in stamps and states[back].stamp_ns in stamps
+    assert all(reasons[k][0] == "posed" for k in range(back, len(states))), reasons
+    # (a held frame: the pair spans two frames, its scale from the last speed; measured 0.041)
+    assert accuracy(gt, est)["ate_m"]["rmse"] < (0.06 if unpaired else 0.02)
 
 
 def test_a_tracking_pose_that_explains_under_half_its_points_is_not_taken():
