@@ -254,10 +254,10 @@ class WindowOdometry:
         self._err_medians: deque = deque(maxlen=15)  # their median reprojection errors (px)
         self._err_median = np.nan  # the last motion-only refinement's
         self._weak = False  # the last frame's tracking was weak (async: map synchronously)
-        # the last frame tracked against the map, if it did not become a keyframe: (its state
-        # as tracked, observations, outlier track ids); a pair recovery whose keyframe shares
-        # too few tracks with the lost frame makes it a keyframe late and pairs with it
-        self._last_tracked: tuple[FrameState, Observations, np.ndarray] | None = None
+        # the last frame tracked against the map, if it did not become a keyframe: (its stamp,
+        # observations, outlier track ids; valid while it is ``_last``); a pair recovery whose
+        # keyframe shares too few tracks with the lost frame makes it a keyframe late
+        self._last_tracked: tuple[int, Observations, np.ndarray] | None = None
         # BA corrections reported with frames that were not posed (the pipeline moves the
         # published odometry at posed frames only): handed on with the next posed frame
         self._moved_unposted: list[tuple[FrameState, FrameState]] = []
@@ -618,8 +618,7 @@ class WindowOdometry:
                 result.ba_moved = [(before, state.copy())]
         self._lost = 0
         self._speeds.append(float(np.linalg.norm(state.v)))
-        self._last_tracked = None if result.keyframe else \
-            (state.copy(), obs, obs.ids[ib][~inl])
+        self._last_tracked = None if result.keyframe else (stamp_ns, obs, obs.ids[ib][~inl])
         self._before, self._last = self._last, state.copy()
         return result
 
@@ -687,8 +686,8 @@ class WindowOdometry:
             found = self._pair_recovery(last_kf, stamp_ns, obs)
             late = self._late_keyframe(last_kf) if found is None else None
             if late is not None:
-                kf, late_moved = late
-                late_moved = [late_moved]  # that (published) frame moved first
+                kf, moved = late
+                late_moved = [moved]  # that (published) frame moved first
                 found = self._pair_recovery(kf, stamp_ns, obs)
                 if found is not None:
                     found.reason = LATE_RECOVERY_REASON
@@ -730,7 +729,6 @@ class WindowOdometry:
         report = self.map_keyframe(new_kf)
         state = new_kf.state.copy() if new_kf in self.map.keyframes else state
         self._before, self._last = self._last, state.copy()
-        self._last_tracked = None
         self._lost = 0
         self._tracked_at_kf = len(self.map.landmarks)
         self._make_provisional(stamp_ns)
@@ -749,8 +747,8 @@ class WindowOdometry:
         kept, self._last_tracked = self._last_tracked, None
         if kept is None or self._last is None:
             return None
-        state, obs, rejected = kept
-        if state.stamp_ns != self._last.stamp_ns or state.stamp_ns <= last_kf.state.stamp_ns:
+        stamp_ns, obs, rejected = kept
+        if stamp_ns != self._last.stamp_ns or stamp_ns <= last_kf.state.stamp_ns:
             return None
         kf = self._new_keyframe(self._last, obs, (self._last.w.copy(), self._last.v.copy()))
         kf.before = self._before.copy() if self._before is not None else None
