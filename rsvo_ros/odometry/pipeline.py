@@ -750,7 +750,12 @@ class OdometryPipeline:
         if bootstrap and interval is not None and len(pair.ids) >= self.options.min_tracks:
             step = self.chain.step(pair, interval, idx)
         hint = self.chain.T_world_cam.copy() if bootstrap else None
-        out = self.window.track(stamp_ns, obs, hint)
+        # the chain's world (the odometry frame) in the lost map's, whose landmarks the memory
+        # holds: a new map's frames try to re-find it
+        memory_from_hint = None
+        if bootstrap and self._T_odom_trusted is not None:
+            memory_from_hint = np.linalg.inv(self._T_odom_trusted)
+        out = self.window.track(stamp_ns, obs, hint, memory_from_hint)
         state: FrameState | None = out.state
         if self.options.line_delay_refine and out.status == "posed" and state is not None:
             self.refine_log.append((stamp_ns, state.R.copy(), state.w.copy(), self.line_delay))

@@ -262,6 +262,9 @@ class WindowOdometry:
         # published odometry at posed frames only): handed on with the next posed frame
         self._moved_unposted: list[tuple[FrameState, FrameState]] = []
         self._hints: dict[int, np.ndarray] = {}  # stamp -> the chain's row-0 pose
+        # while a new map initialises after a loss: the last two frames' (stamp, chain pose in
+        # the memory's world), the prediction for re-finding the lost map
+        self._hints_in_memory: deque = deque(maxlen=2)
         # the last tracked frames' (stamp, R, w): the map's shear (shear_from_turns)
         self._rates: deque = deque(maxlen=SHEAR_FRAMES_KEPT)
         if getattr(self, "_mapper", None) is not None:
@@ -381,12 +384,19 @@ class WindowOdometry:
         re-found frame is posed in."""
         return not self.initialising and not self._provisional(stamp_ns)
 
-    def track(self, stamp_ns: int, obs: Observations,
-              hint: np.ndarray | None = None) -> WindowResult:  # fmt: skip
+    def track(self, stamp_ns: int, obs: Observations, hint: np.ndarray | None = None,
+              memory_from_hint: np.ndarray | None = None) -> WindowResult:  # fmt: skip
         """One frame. ``hint``: while initialising, the frame's row-0 ``T_world_camera`` from
-        another estimate (the pairwise chain): the map starts in its world and scale."""
+        another estimate (the pairwise chain): the map starts in its world and scale.
+        ``memory_from_hint``: the hint's world in the memory's (the lost map's, 4x4), if
+        known: after a loss each frame until the new map's first pose tries to re-find the
+        lost map there."""
         if self.initialising and hint is not None:
             self._hints[stamp_ns] = hint
+            if memory_from_hint is not None:
+                T = memory_from_hint @ hint
+                if np.isfinite(T).all():
+                    self._hints_in_memory.append((stamp_ns, T))
         if self._last is None and self._ref is None:
             return self._start(stamp_ns, obs)
         if self._ref is not None:
@@ -460,6 +470,10 @@ class WindowOdometry:
                             "map lost: starting a new one here", state)  # fmt: skip
 
     def _initialise(self, stamp_ns: int, obs: Observations) -> WindowResult:
+        if self._origin is not None and self._provisional(stamp_ns):
+            found = self._refind_while_initialising(stamp_ns, obs)
+            if found is not None:
+                return found
         ref = self._ref
         shared = len(np.intersect1d(ref.obs.ids, obs.ids))
         if shared < 2 * self.options.min_inliers:
@@ -552,6 +566,25 @@ class WindowOdometry:
                             inliers=res.num_inliers, tracked=len(ia),
                             keyframe=True, ba=report, ba_moved=moved,
                             inlier_ids=paired[mapped], outlier_ids=paired[~mapped])  # fmt: skip
+
+    def _refind_while_initialising(self, stamp_ns: int,
+                                   obs: Observations) -> WindowResult | None:  # fmt: skip
+        """A map started over after a loss: the frame re-finds the lost map in the memory
+        (:meth:`_relocalize`), predicted by the pairwise chain's pose in the memory's world.
+        A rebuilt map's keyframes try this too, but a new map can wait for its translation
+        parallax for seconds (28 frames of a 15 Hz walk's turn on the spot), and by then the
+        lost map's landmarks were out of view. None without a prediction or a match."""
+        if not self._hints_in_memory or self._hints_in_memory[-1][0] != stamp_ns:
+            return None
+        T = self._hints_in_memory[-1][1]
+        predicted = FrameState(stamp_ns, T[:3, :3].copy(), T[:3, 3].copy(),
+                               self._origin.w.copy())  # fmt: skip
+        if len(self._hints_in_memory) == 2:
+            stamp_prev, T_prev = self._hints_in_memory[0]
+            if stamp_prev < stamp_ns:
+                prev = FrameState(stamp_prev, T_prev[:3, :3], T_prev[:3, 3])
+                predicted.w, predicted.v = interval_velocity(prev, predicted)
+        return self._relocalize(stamp_ns, obs, predicted)
 
     def _rebase_to_row0_of(self, kf: KeyFrame) -> None:
         """Move the world so that the first keyframe's row-0 camera is the origin."""
@@ -706,6 +739,7 @@ class WindowOdometry:
             self._points = (np.zeros(0, np.int64), np.zeros((0, 3)))
             self._last = self._before = None
             self._lost = 0
+            self._hints_in_memory.clear()
             started = self._start(stamp_ns, obs)
             started.reason = "lost: too few map points and no pair pose; a new map starts"
             return started
