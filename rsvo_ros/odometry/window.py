@@ -52,6 +52,8 @@ FOCAL_REF_PX = 1000.0  # pixel thresholds below are given at this focal length a
 # reaches 80 px of it in about 20 frames, translation alone in 100 or more)
 REINIT_PARALLAX_FACTOR = 2.0
 SHEAR_FRAMES_KEPT = 900  # tracked frames kept for the map's shear (30 s at 30 Hz)
+# tracked frames whose median speed scales a pair recovery in a turn on the spot
+RECENT_SPEED_FRAMES = 5
 REFOUND_REASON = "re-found the map"  # a frame's reason where descriptors found the map again
 # a frame's reason where the last keyframe shared too few tracks for a pair and the frame was
 # recovered from the last tracked frame, made a keyframe late
@@ -124,6 +126,15 @@ class WindowOptions:
     # a few millimetres apart, gave 31 usual steps; a walker setting off after a look-around
     # took a right 4.9, which 3 rejected)
     recovery_max_steps: float = 10.0
+    # ... and one with less translation parallax than this (px at 1000 px focal; 3 is the
+    # chain's rotation_only_parallax_px) is a turn on the spot: the depths it shares with the
+    # map do not fix its scale, and its step is the median speed of the last
+    # RECENT_SPEED_FRAMES tracked frames (a walker who stopped to look around, 15 Hz: the
+    # depths gave 5x the true step). 0: off, the default: at 3 px inline 15 Hz walks came out
+    # 0.86x and 30 Hz walk tables 0.97-0.98x, but async 15 Hz walks 1.2x worse (one walk 7x,
+    # where without it a later keyframe re-found the map: README, "A new map that re-finds
+    # the lost one, and a turn's recovery scaled by the recent speed")
+    recovery_turn_parallax_px: float = 0.0
     # mapping (keyframe insertion and the window BA) on a background thread: tracking goes on
     # against the map it has and picks up the refined map at its next frame; while mapping is
     # busy no new keyframe is made (ORB-SLAM's rule). False: inline (deterministic; the replay)
@@ -754,7 +765,9 @@ class WindowOdometry:
         res, ia, ib = self._pair(kf.obs, obs, dt, self.seed + self._next_kf)
         if res is None:
             return None
-        scale = self._pair_scale(kf, res, ia, dt)
+        limit = self.options.recovery_turn_parallax_px * self.focal / 1000.0
+        turn = limit > 0 and self._translation_parallax_px(kf, obs) < limit
+        scale = self._pair_scale(kf, res, ia, dt, turn)
         if scale is None:
             return None
         state, _, vel_cur = self._states_from_pair(res, kf.state, stamp_ns, scale)
@@ -794,11 +807,17 @@ class WindowOdometry:
         self._last = kf.state.copy()
         return kf, (before, kf.state.copy())
 
-    def _pair_scale(self, kf: KeyFrame, res, ia: np.ndarray, dt: float) -> float | None:
+    def _pair_scale(self, kf: KeyFrame, res, ia: np.ndarray, dt: float,
+                    turn: bool = False) -> float | None:  # fmt: skip
         """Map units per unit of the pair's ``|t|`` from the depths of the landmarks the pair
         shares with the map (median ratio) unless that moves the camera more than
         ``recovery_max_steps`` usual steps, else from the last speed (at most twice the usual
-        speed: the frames just before a loss may be off)."""
+        speed: the frames just before a loss may be off). ``turn``: a pair without translation
+        parallax, scaled by the last tracked frames' median speed."""
+        if turn and self._speeds:
+            recent = float(np.median(list(self._speeds)[-RECENT_SPEED_FRAMES:]))
+            if recent * dt > 0:
+                return recent * dt
         usual = self._usual_speed()
         limit = np.inf if usual is None else self.options.recovery_max_steps * usual * dt
         tids = kf.obs.ids[ia]
