@@ -374,12 +374,12 @@ def test_a_fault_that_stays_resets_the_node_after_three_frames(ros_context, monk
     info, msgs = _frames(6)
     poisoned, track = [], WindowOdometry.track
 
-    def failing(self, stamp_ns, obs, hint=None):
+    def failing(self, stamp_ns, obs, hint=None, memory_from_hint=None):
         if stamp_ns >= _stamp(msgs[1]) and not poisoned and self.K[0, 0] == info.k[0]:
             poisoned.append(self)
         if poisoned and self is poisoned[0]:
             raise RuntimeError("state gone bad")
-        return track(self, stamp_ns, obs, hint)
+        return track(self, stamp_ns, obs, hint, memory_from_hint)
 
     monkeypatch.setattr(WindowOdometry, "track", failing)
     h = Harness(ros_context, [Parameter("model", value="gs")])

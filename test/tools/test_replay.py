@@ -546,12 +546,12 @@ def _poison_the_window(monkeypatch, from_stamp_ns: int, focal: float) -> None:
     poisoned = []
     track = WindowOdometry.track
 
-    def failing(self, stamp_ns, obs, hint=None):
+    def failing(self, stamp_ns, obs, hint=None, memory_from_hint=None):
         if self.K[0, 0] == focal and stamp_ns >= from_stamp_ns and not poisoned:
             poisoned.append(self)
         if poisoned and self is poisoned[0]:
             raise RuntimeError("state gone bad")
-        return track(self, stamp_ns, obs, hint)
+        return track(self, stamp_ns, obs, hint, memory_from_hint)
 
     monkeypatch.setattr(WindowOdometry, "track", failing)
 
