@@ -132,8 +132,8 @@ class WindowOptions:
     # RECENT_SPEED_FRAMES tracked frames (a walker who stopped to look around, 15 Hz: the
     # depths gave 5x the true step). 0: off, the default: at 3 px inline 15 Hz walks came out
     # 0.86x and 30 Hz walk tables 0.97-0.98x, but async 15 Hz walks 1.2x worse (one walk 7x,
-    # where without it a later keyframe re-found the map: README, "A new map that re-finds
-    # the lost one, and a turn's recovery scaled by the recent speed")
+    # where without it the map was re-found a few frames later: README, "A new map that
+    # re-finds the lost one, and a turn's recovery scaled by the recent speed")
     recovery_turn_parallax_px: float = 0.0
     # mapping (keyframe insertion and the window BA) on a background thread: tracking goes on
     # against the map it has and picks up the refined map at its next frame; while mapping is
@@ -765,7 +765,7 @@ class WindowOdometry:
         res, ia, ib = self._pair(kf.obs, obs, dt, self.seed + self._next_kf)
         if res is None:
             return None
-        limit = self.options.recovery_turn_parallax_px * self.focal / 1000.0
+        limit = self.options.recovery_turn_parallax_px * self._px
         turn = limit > 0 and self._translation_parallax_px(kf, obs) < limit
         scale = self._pair_scale(kf, res, ia, dt, turn)
         if scale is None:
