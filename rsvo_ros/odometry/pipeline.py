@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from rsvo_ros.core.geometry import rigid_correction
+from rsvo_ros.core.geometry import pose_inverse, rigid_correction
 from rsvo_ros.core.lens import LensModel, as_lens, undistort_points
 from rsvo_ros.core.readout import check_readout, sensor_line_count, sensor_rows
 from rsvo_ros.odometry.frame import FrameState, Observations
@@ -754,7 +754,7 @@ class OdometryPipeline:
         # holds: a new map's frames try to re-find it
         memory_from_hint = None
         if bootstrap and self._T_odom_trusted is not None:
-            memory_from_hint = np.linalg.inv(self._T_odom_trusted)
+            memory_from_hint = pose_inverse(self._T_odom_trusted)
         out = self.window.track(stamp_ns, obs, hint, memory_from_hint)
         state: FrameState | None = out.state
         if self.options.line_delay_refine and out.status == "posed" and state is not None:
