@@ -130,11 +130,11 @@ class WindowOptions:
     # chain's rotation_only_parallax_px) is a turn on the spot: the depths it shares with the
     # map do not fix its scale, and its step is the median speed of the last
     # RECENT_SPEED_FRAMES tracked frames (a walker who stopped to look around, 15 Hz: the
-    # depths gave 5x the true step). 0: off, the default: at 3 px inline 15 Hz walks came out
-    # 0.86x and 30 Hz walk tables 0.97-0.98x, but async 15 Hz walks 1.2x worse (one walk 7x,
-    # where without it the map was re-found a few frames later: README, "A new map that
-    # re-finds the lost one, and a turn's recovery scaled by the recent speed")
-    recovery_turn_parallax_px: float = 0.0
+    # depths gave 5x the true step). 0: off. Alone it made async 15 Hz walks 1.2x worse (one
+    # 7x: the frames after it no longer re-found the map); with reloc_frames_after_recovery
+    # 15 Hz walks come out 0.80x inline, 0.94x async, 30 Hz walk tables 0.93x (README, "The
+    # frames after a pair recovery re-find the map")
+    recovery_turn_parallax_px: float = 3.0
     # mapping (keyframe insertion and the window BA) on a background thread: tracking goes on
     # against the map it has and picks up the refined map at its next frame; while mapping is
     # busy no new keyframe is made (ORB-SLAM's rule). False: inline (deterministic; the replay)
@@ -172,6 +172,12 @@ class WindowOptions:
     # ... and, re-finding the map it is in (not one rebuilt after a loss), a position within
     # this many of the usual steps of the prediction
     reloc_max_jump_steps: float = 3.0
+    # after a pair recovery, this many frames (tracked in the recovered map, within
+    # reloc_window_s) each try to re-find the remembered map, not only the keyframes (a pair
+    # recovery in a turn on the spot can take a wrong scale, and the remembered landmarks may
+    # be in view only for the next few frames: a 15 Hz walk's turn, 1.24 -> 0.13 m). 0:
+    # keyframes only
+    reloc_frames_after_recovery: int = 5
 
 
 @dataclass
@@ -289,6 +295,7 @@ class WindowOdometry:
         # a map rebuilt after a loss is provisional until this stamp: its keyframes try to
         # re-find the old map, and it does not write into the memory
         self._provisional_until: int | None = None
+        self._refind_frames = 0  # frames left to try re-finding after a pair recovery
 
     # ------------------------------------------------------------------ helpers
 
@@ -640,6 +647,11 @@ class WindowOdometry:
             inliers < o.sync_below_inlier_share * float(np.median(self._inliers))
         self._inliers.append(inliers)
         mapping_busy = self._mapper is not None and self._mapper.busy
+        if self._refind_frames > 0 and self._provisional(stamp_ns):
+            self._refind_frames -= 1
+            found = self._relocalize(stamp_ns, obs, state, exclude=ids)
+            if found is not None:
+                return found
         if not mapping_busy and self._needs_keyframe(last_kf, obs, state, inliers):
             if self._provisional(stamp_ns):
                 found = self._relocalize(stamp_ns, obs, state, exclude=ids)
@@ -751,6 +763,7 @@ class WindowOdometry:
             self._last = self._before = None
             self._lost = 0
             self._hints_in_memory.clear()
+            self._refind_frames = 0
             started = self._start(stamp_ns, obs)
             started.reason = "lost: too few map points and no pair pose; a new map starts"
             return started
@@ -779,6 +792,7 @@ class WindowOdometry:
         self._lost = 0
         self._tracked_at_kf = len(self.map.landmarks)
         self._make_provisional(stamp_ns)
+        self._refind_frames = self.options.reloc_frames_after_recovery
         paired = obs.ids[ib]
         return WindowResult("posed", "recovered with the pair estimator", state,
                             inliers=res.num_inliers, tracked=len(ib), keyframe=True,
@@ -978,6 +992,7 @@ class WindowOdometry:
         self._lost = 0
         self._tracked_at_kf = int(inl.sum())
         self._provisional_until = None
+        self._refind_frames = 0
         self._ref = self._origin = None
         self._hints.clear()
         return WindowResult("posed", f"{REFOUND_REASON} ({int(inl.sum())} points)", state,
