@@ -647,13 +647,14 @@ class WindowOdometry:
             inliers < o.sync_below_inlier_share * float(np.median(self._inliers))
         self._inliers.append(inliers)
         mapping_busy = self._mapper is not None and self._mapper.busy
-        if self._refind_frames > 0 and self._provisional(stamp_ns):
+        tried = self._refind_frames > 0 and self._provisional(stamp_ns)
+        if tried:  # one of the frames after a pair recovery
             self._refind_frames -= 1
             found = self._relocalize(stamp_ns, obs, state, exclude=ids)
             if found is not None:
                 return found
         if not mapping_busy and self._needs_keyframe(last_kf, obs, state, inliers):
-            if self._provisional(stamp_ns):
+            if self._provisional(stamp_ns) and not tried:
                 found = self._relocalize(stamp_ns, obs, state, exclude=ids)
                 if found is not None:
                     return found
