@@ -249,6 +249,33 @@ class CorridorScene:
             img[mask] = sample[mask]
         return img
 
+    def first_hit(self, origin: np.ndarray,
+                  directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """Where rays from ``origin`` (3,) along ``directions`` (N, 3) first meet the corridor
+        (walls, floor, ceiling; no movers), in float64: the distance in units of each
+        direction's length (N,) (inf: no hit) and the surface (N,) (0 inner wall, 1 outer
+        wall, 2 floor, 3 ceiling; -1: none). The exact-track tools' scene points."""
+        o = np.asarray(origin, float)
+        d = np.atleast_2d(np.asarray(directions, float))
+        best = np.full(len(d), np.inf)
+        surface = np.full(len(d), -1, np.int64)
+        cx, cz = self.centre
+        with np.errstate(invalid="ignore", divide="ignore"):
+            for which in (0, 1):
+                A, B = self.wall_axes(which)
+                ox, oz, dx, dz = (o[0] - cx) / A, (o[2] - cz) / B, d[:, 0] / A, d[:, 2] / B
+                qa, qb = dx * dx + dz * dz, ox * dx + oz * dz
+                disc = qb * qb - qa * (ox * ox + oz * oz - 1.0)
+                root = np.sqrt(np.maximum(disc, 0.0))
+                for lam in ((-qb - root) / qa, (-qb + root) / qa):
+                    hit = (disc > 0) & (lam > 1e-3) & (lam < best)
+                    best[hit], surface[hit] = lam[hit], which
+            for which, y0 in ((2, self.floor_y), (3, self.ceiling_y)):
+                lam = (y0 - o[1]) / d[:, 1]
+                hit = (lam > 1e-3) & (lam < best)
+                best[hit], surface[hit] = lam[hit], which
+        return best, surface
+
     def surface_points(self, which: int, s: np.ndarray, t: np.ndarray) -> np.ndarray:
         """World points (N, 3) at texture coordinates (metres) of surface ``which``
         (0 inner wall, 1 outer wall, 2 floor, 3 ceiling): the inverse of the texture mapping."""
