@@ -33,9 +33,10 @@ import numpy as np
 
 from rsvo_ros.core.geometry import so3_exp, so3_log
 from rsvo_ros.odometry.frame import Observations
-from rsvo_ros.odometry.window import WindowOdometry, WindowOptions
+from rsvo_ros.odometry.pipeline import PipelineOptions
+from rsvo_ros.odometry.window import WindowOdometry
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig, project_points
-from rsvo_ros.tools.replay import window_option_arg
+from rsvo_ros.tools.replay import set_window_options, window_option_arg
 
 CHUNK_FRAMES = 10
 RAYS_PER_FRAME = 120  # scene points cast from each second frame
@@ -88,10 +89,9 @@ def exact_walk(seed: int, rate: float, start: int, stop: int, width: int = 1280,
     order = np.argsort(np.random.default_rng([seed, 6]).random(len(X)))  # who is kept first
     rank = np.empty(len(X), np.int64)
     rank[order] = np.arange(len(X))
-    options = WindowOptions()
-    for name, value in window_options:
-        setattr(options, name, type(getattr(options, name))(value))
-    odometry = WindowOdometry(K, cfg.tau, options)
+    options = PipelineOptions()
+    set_window_options(options, list(window_options))
+    odometry = WindowOdometry(K, cfg.tau, options.window)
     est, gt, residual = [], [], []
     outcomes: collections.Counter = collections.Counter()
     first_tracked = None

@@ -5,7 +5,7 @@ import numpy as np
 from rsvo_ros.sim.synth import CAMERA_HEIGHT_M, CorridorScene, SequenceRenderer, SynthConfig
 
 
-def test_rays_meet_the_floor_below_and_a_wall_ahead():
+def test_rays_meet_the_floor_below_and_a_wall_to_each_side():
     renderer = SequenceRenderer(SynthConfig(frames=2, motion="walk", seed=3))
     _, R, p, *_ = renderer.frame_pose(0)
     scene: CorridorScene = renderer.scene
@@ -21,6 +21,6 @@ def test_rays_meet_the_floor_below_and_a_wall_ahead():
         X = p + lam[k] * (sideways[0] if k == 0 else -sideways[0])
         A, B = scene.wall_axes(int(which[k]))
         assert np.isclose(((X[0] - cx) / A) ** 2 + ((X[2] - cz) / B) ** 2, 1.0)
-    up_and_out = np.array([[0.0, 0.0, 0.0]])  # a zero direction meets nothing
-    lam, which = scene.first_hit(p, up_and_out)
+    zero = np.array([[0.0, 0.0, 0.0]])  # a zero direction meets nothing
+    lam, which = scene.first_hit(p, zero)
     assert np.isinf(lam[0]) and which[0] == -1

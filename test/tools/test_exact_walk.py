@@ -22,7 +22,7 @@ def test_a_shaken_readout_leaves_a_misfit_that_its_quadratic_fit_removes():
     fitted = ew.exact_walk(**SEGMENT, noise_px=0.0, readout_fit="quadratic")
     # the 8-15 Hz shake turns the camera by a cubic in the row time that the model's turn rate
     # and angular acceleration cannot follow; fitted to a quadratic, about half of it is gone
-    # (the rest: the velocity priors)
+    # (the rest: the translation's acceleration in the readout and the priors)
     assert exact["residual_px_median"] > 0.15
     assert fitted["residual_px_median"] < 0.7 * exact["residual_px_median"]  # 0.54x measured
 
