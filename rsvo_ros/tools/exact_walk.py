@@ -4,6 +4,7 @@
     python -m rsvo_ros.tools.exact_walk ... --severity 0          # no shake
     python -m rsvo_ros.tools.exact_walk ... --line-delay 0        # a global shutter
     python -m rsvo_ros.tools.exact_walk ... --readout-fit quadratic
+    python -m rsvo_ros.tools.exact_walk ... --readout-fit linear --noise-axes x
 
 Scene points are cast from random pixels of every second frame onto the corridor's surfaces;
 each frame sees those its reference-row camera has a free line of sight to, at their exact RS
@@ -15,6 +16,9 @@ the odometry does here is the estimator's and the window's, not the tracker's.
 ``--readout-fit quadratic`` replaces each frame's rotation during its readout by its
 least-squares quadratic in the row time (what the model's turn rate and angular acceleration
 can represent; the positions stay exact): the part a frame's model cannot fit is then gone.
+``--readout-fit linear`` replaces the rotation and the position by their least-squares lines
+in the row time: each readout is then the paper's constant velocity exactly (no angular
+acceleration either). ``--noise-axes x`` (``y``) puts the noise in the columns (rows) only.
 
 Prints one JSON line: the estimate's size against the truth (path length over each
 ``CHUNK_FRAMES`` frames, estimate / truth) from the first frame the map tracked, its log-slope
@@ -43,29 +47,51 @@ RAYS_PER_FRAME = 120  # scene points cast from each second frame
 SIGHT_TOLERANCE = 0.01  # a point is seen if the first hit on its ray is this close (share)
 
 
-def _quadratic_readout(row_pose, row_ref: float, tau: float, height: int):
-    """``row_pose`` with each row's rotation replaced by the least-squares quadratic in the
-    row time about ``row_ref`` (positions as they are)."""
+READOUT_FITS = ("exact", "quadratic", "linear")
+NOISE_AXES = {"xy": (1.0, 1.0), "x": (1.0, 0.0), "y": (0.0, 1.0)}
+
+
+def fitted_readout(row_pose, row_ref: float, tau: float, height: int, fit: str):
+    """``row_pose`` with each row's rotation replaced by its least-squares polynomial in the
+    row time ``s`` about ``row_ref``: ``quadratic`` (``s``, ``s^2``; positions as they are) or
+    ``linear`` (``s``; the position too: the paper's constant velocity within the frame)."""
     rows = np.arange(0.0, height + 1.0, 10.0)
-    R_rows, _ = row_pose(rows)
-    R_ref = np.asarray(row_pose(np.array([row_ref]))[0])[0]
+    R_rows, p_rows = row_pose(rows)
+    R_ref, p_ref = (np.asarray(a)[0] for a in row_pose(np.array([row_ref])))
     s = (rows - row_ref) * tau
+    basis = (lambda t: np.column_stack([t, t * t])) if fit == "quadratic" else \
+        (lambda t: t[:, None])  # fmt: skip
     logs = np.array([so3_log(R_ref.T @ R) for R in np.asarray(R_rows)])
-    coef = np.linalg.lstsq(np.column_stack([s, s * s]), logs, rcond=None)[0]
+    coef = np.linalg.lstsq(basis(s), logs, rcond=None)[0]
+    vel = np.linalg.lstsq(s[:, None], np.asarray(p_rows) - p_ref, rcond=None)[0][0]
 
     def fitted(r, dt=0.0):
         r = np.asarray(r, float)
         sr = (r - row_ref) * tau
-        turn = np.column_stack([sr, sr * sr]) @ coef
-        return np.array([R_ref @ so3_exp(t) for t in turn]), np.asarray(row_pose(r)[1])
+        R = np.array([R_ref @ so3_exp(t) for t in basis(sr) @ coef])
+        if fit == "linear":
+            return R, p_ref + sr[:, None] * vel
+        return R, np.asarray(row_pose(r)[1])
 
     return fitted
+
+
+def noisy(px: np.ndarray, rng: np.random.Generator, noise_px: float,
+          axes: str = "xy") -> np.ndarray:
+    """``px`` (n, 2) plus Gaussian noise of std ``noise_px`` in the coordinates ``axes`` names
+    (``xy``, ``x``: the columns, ``y``: the rows). The same draws whatever the axes."""
+    return px + rng.normal(0.0, noise_px, px.shape) * np.array(NOISE_AXES[axes])
 
 
 def exact_walk(seed: int, rate: float, start: int, stop: int, width: int = 1280,
                height: int = 720, severity: float = 1.0, line_delay: float | None = None,
                readout_fit: str = "exact", noise_px: float = 0.3, points: int = 500,
-               window_options: list[tuple[str, float]] = ()) -> dict:  # fmt: skip
+               window_options: list[tuple[str, float]] = (),
+               noise_axes: str = "xy") -> dict:  # fmt: skip
+    if readout_fit not in READOUT_FITS:
+        raise ValueError(f"readout_fit {readout_fit!r}: one of {', '.join(READOUT_FITS)}")
+    if noise_axes not in NOISE_AXES:
+        raise ValueError(f"noise_axes {noise_axes!r}: one of {', '.join(NOISE_AXES)}")
     if not 0 <= start < stop - 2 * CHUNK_FRAMES:
         raise ValueError(f"frames {start}..{stop}: need 0 <= start and at least "
                          f"{2 * CHUNK_FRAMES + 1} frames")
@@ -97,8 +123,8 @@ def exact_walk(seed: int, rate: float, start: int, stop: int, width: int = 1280,
     first_tracked = None
     for k in range(start, stop):
         stamp, R0, p0, _, _, row_pose = renderer.frame_pose(k)
-        if readout_fit == "quadratic":
-            row_pose = _quadratic_readout(row_pose, row_ref, cfg.tau, height)
+        if readout_fit != "exact":
+            row_pose = fitted_readout(row_pose, row_ref, cfg.tau, height, readout_fit)
         px = project_points(X, row_pose, K, height)
         inside = np.isfinite(px).all(1) & (px[:, 0] >= 0) & (px[:, 0] <= width - 1) \
             & (px[:, 1] >= 0) & (px[:, 1] <= height - 1)  # fmt: skip
@@ -108,7 +134,7 @@ def exact_walk(seed: int, rate: float, start: int, stop: int, width: int = 1280,
         lam, _ = scene.first_hit(p_ref, ray)
         idx = idx[np.abs(lam - 1.0) < SIGHT_TOLERANCE]  # nothing in between
         idx = idx[np.argsort(rank[idx])[:points]]
-        q = px[idx] + rng.normal(0.0, noise_px, (len(idx), 2))
+        q = noisy(px[idx], rng, noise_px, noise_axes)
         x = (q - K[:2, 2]) / np.diag(K)[:2]
         res = odometry.track(round(stamp * 1e9), Observations(
             idx.astype(np.int64), x, odometry.row_time(q[:, 1]), q, q[:, 1]))  # fmt: skip
@@ -122,6 +148,7 @@ def exact_walk(seed: int, rate: float, start: int, stop: int, width: int = 1280,
             gt.append(np.asarray(p0).reshape(3))
     out = {"seed": seed, "rate_hz": rate, "frames": [start, stop], "severity": severity,
            "line_delay": cfg.tau, "readout_fit": readout_fit, "noise_px": noise_px,
+           "noise_axes": noise_axes,
            "points": len(X), "window_options": dict(window_options),
            "first_tracked": first_tracked, "outcomes": dict(outcomes),
            "residual_px_median": float(np.median(residual)) if residual else None,
@@ -152,8 +179,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--line-delay", type=float, default=None,
                     help="s per row (default: the renderer's, the lesser of 36 ms and a frame "
                          "interval over the height)")
-    ap.add_argument("--readout-fit", choices=("exact", "quadratic"), default="exact")
-    ap.add_argument("--noise-px", type=float, default=0.3)
+    ap.add_argument("--readout-fit", choices=READOUT_FITS, default="exact",
+                    help="each readout as rendered, or its rotation fitted by a quadratic, or "
+                         "its rotation and position by lines in the row time (the paper's "
+                         "constant velocity exactly)")
+    ap.add_argument("--noise-px", type=float, default=0.3, help="Gaussian noise std (px)")
+    ap.add_argument("--noise-axes", choices=tuple(NOISE_AXES), default="xy",
+                    help="where the noise goes: both coordinates, the columns or the rows")
     ap.add_argument("--points", type=int, default=500, help="tracks per frame at most")
     ap.add_argument("--window-option", type=window_option_arg, action="append", default=[],
                     metavar="NAME=VALUE", help="a numeric WindowOptions field (repeatable)")
@@ -168,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         out = exact_walk(args.seed, args.rate, args.start, args.stop, width, height,
                          args.severity, args.line_delay, args.readout_fit, args.noise_px,
-                         args.points, args.window_option)  # fmt: skip
+                         args.points, args.window_option, args.noise_axes)  # fmt: skip
     except ValueError as exc:
         ap.error(str(exc))
     print(json.dumps(out))
