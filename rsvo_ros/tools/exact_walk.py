@@ -41,6 +41,7 @@ from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.odometry.window import WindowOdometry
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig, project_points
 from rsvo_ros.tools.replay import set_window_options, window_option_arg
+from rsvo_ros.tools.synth_bag import resolution_arg
 
 CHUNK_FRAMES = 10
 RAYS_PER_FRAME = 120  # scene points cast from each second frame
@@ -174,7 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=15.0, help="frames per second of the walk")
     ap.add_argument("--start", type=int, default=166, help="first frame")
     ap.add_argument("--stop", type=int, default=300, help="frame after the last")
-    ap.add_argument("--resolution", default="1280x720", help="WIDTHxHEIGHT")
+    ap.add_argument("--resolution", type=resolution_arg, default=(1280, 720), metavar="WxH",
+                    help="image size (default 1280x720)")
     ap.add_argument("--severity", type=float, default=1.0, help="the walk's shake")
     ap.add_argument("--line-delay", type=float, default=None,
                     help="s per row (default: the renderer's, the lesser of 36 ms and a frame "
@@ -190,10 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window-option", type=window_option_arg, action="append", default=[],
                     metavar="NAME=VALUE", help="a numeric WindowOptions field (repeatable)")
     args = ap.parse_args(argv)
-    try:
-        width, height = (int(v) for v in args.resolution.lower().split("x"))
-    except ValueError:
-        ap.error(f"--resolution {args.resolution!r}: expected WIDTHxHEIGHT")
+    width, height = args.resolution
     if args.rate <= 0 or args.severity < 0 or args.noise_px < 0 or args.points < 20 \
             or (args.line_delay is not None and args.line_delay < 0):  # fmt: skip
         ap.error("--rate must be positive, --points at least 20, the others >= 0")

@@ -38,6 +38,7 @@ from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
 from rsvo_ros.odometry.tracker import MAX_DECIMATION, AutoDecimation
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.replay import accuracy, set_window_options, window_option_arg
+from rsvo_ros.tools.synth_bag import resolution_arg
 from rsvo_ros.twoview.estimator import warm_up
 
 
@@ -149,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=15.0, help="frames per second fed (async)")
     ap.add_argument("--mapping", choices=("async", "inline"), default="async")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--resolution", default="640x480", help="WIDTHxHEIGHT")
+    ap.add_argument("--resolution", type=resolution_arg, default=(640, 480), metavar="WxH",
+                    help="image size (default 640x480)")
     ap.add_argument("--window-option", type=window_option_arg, action="append", default=[],
                     metavar="NAME=VALUE", help="a numeric WindowOptions field (repeatable)")
     ap.add_argument("--slow-ms", type=float, default=None, help="list frames slower than this")
@@ -180,10 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         args.decimation = int(args.decimation)
     elif not args.drop:
         ap.error("--decimation auto needs --drop (it steps down when frames are dropped)")
-    try:
-        width, height = (int(v) for v in args.resolution.lower().split("x"))
-    except ValueError:
-        ap.error(f"--resolution {args.resolution!r}: expected WIDTHxHEIGHT, e.g. 640x480")
+    width, height = args.resolution
     if args.frames < 2 or args.rate <= 0:
         ap.error("--frames must be at least 2 and --rate positive")
     if args.drop_every < 0 or args.drop_every == 1:

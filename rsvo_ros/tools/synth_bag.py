@@ -86,12 +86,16 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
             "frames_per_second": config.frames / max(elapsed, 1e-9)}  # fmt: skip
 
 
-def _resolution(text: str) -> tuple[int, int]:
+def resolution_arg(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` (positive whole numbers) as ``(width, height)``: the tools'
+    ``--resolution``."""
     try:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
+        w = h = 0
+    if w <= 0 or h <= 0:
         raise argparse.ArgumentTypeError(
-            f"resolution must look like 640x360, got {text!r}") from None
+            f"{text!r}: expected WIDTHxHEIGHT in positive whole numbers, e.g. 640x360")
     return w, h
 
 
@@ -111,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="RS distortion level of --motion paper (default 6)")
     p.add_argument("--severity", type=float, default=1.0,
                    help="shaking scale of handheld / vehicle motion (default 1.0; 0 = smooth)")
-    p.add_argument("--resolution", type=_resolution, default=(640, 360), metavar="WxH",
+    p.add_argument("--resolution", type=resolution_arg, default=(640, 360), metavar="WxH",
                    help="image size (default 640x360)")
     p.add_argument("--line-delay", type=float, default=None, metavar="S",
                    help="seconds per row (default: a 36 ms readout, the paper's 720 x 50 us)")

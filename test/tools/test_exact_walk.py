@@ -66,6 +66,13 @@ def test_the_noise_goes_where_it_is_asked(axes, moved):
         ew.exact_walk(**SEGMENT, noise_axes="z")
 
 
+@pytest.mark.parametrize("size", ["1280", "0x720", "big"])
+def test_the_command_line_refuses_a_bad_resolution(size, capsys):
+    with pytest.raises(SystemExit):
+        ew.main(["--resolution", size])
+    assert "expected WIDTHxHEIGHT" in capsys.readouterr().err
+
+
 def test_the_command_line_refuses_a_too_short_segment(capsys):
     with pytest.raises(SystemExit):
         ew.main(["--start", "10", "--stop", "20"])

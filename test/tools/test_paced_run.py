@@ -83,6 +83,7 @@ def test_paced_run_samples_the_motion_at_the_rate_and_tracks_with_klt_alone(caps
     (["--window-option", "min_inlier_ratio=half"], "the value is not a number"),
     (["--window-option", "prior_p_step=-1"], "the value must be >= 0"),
     (["--resolution", "640"], "expected WIDTHxHEIGHT"),
+    (["--resolution", "0x480"], "expected WIDTHxHEIGHT"),
 ])
 def test_paced_run_rejects_bad_arguments(args, message, capsys):
     with pytest.raises(SystemExit):
