@@ -56,6 +56,8 @@ def fitted_readout(row_pose, row_ref: float, tau: float, height: int, fit: str):
     """``row_pose`` with each row's rotation replaced by its least-squares polynomial in the
     row time ``s`` about ``row_ref``: ``quadratic`` (``s``, ``s^2``; positions as they are) or
     ``linear`` (``s``; the position too: the paper's constant velocity within the frame)."""
+    if fit not in ("quadratic", "linear"):
+        raise ValueError(f"fit {fit!r}: quadratic or linear")
     rows = np.arange(0.0, height + 1.0, 10.0)
     R_rows, p_rows = row_pose(rows)
     R_ref, p_ref = (np.asarray(a)[0] for a in row_pose(np.array([row_ref])))
@@ -64,7 +66,8 @@ def fitted_readout(row_pose, row_ref: float, tau: float, height: int, fit: str):
         (lambda t: t[:, None])  # fmt: skip
     logs = np.array([so3_log(R_ref.T @ R) for R in np.asarray(R_rows)])
     coef = np.linalg.lstsq(basis(s), logs, rcond=None)[0]
-    vel = np.linalg.lstsq(s[:, None], np.asarray(p_rows) - p_ref, rcond=None)[0][0]
+    if fit == "linear":
+        vel = np.linalg.lstsq(s[:, None], np.asarray(p_rows) - p_ref, rcond=None)[0][0]
 
     def fitted(r, dt=0.0):
         r = np.asarray(r, float)

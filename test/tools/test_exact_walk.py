@@ -30,7 +30,7 @@ def test_a_shaken_readout_leaves_a_misfit_that_its_fits_remove():
     assert fitted["residual_px_median"] < 0.7 * exact["residual_px_median"]  # 0.54x measured
     # a readout the model follows exactly (constant velocity): less again (0.28x the exact
     # readout's on this segment; 0.03 px over frames 166-299, where the first map's error has
-    # gone: README, "Noise, not the readout's shape")
+    # gone: README, "Not the readout's shape")
     linear = ew.exact_walk(**SEGMENT, noise_px=0.0, readout_fit="linear")
     assert linear["residual_px_median"] < min(0.4 * exact["residual_px_median"],
                                               fitted["residual_px_median"])  # fmt: skip
