@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rsvo_ros.sim.synth import resolution_arg
+
 LARGE_IMAGES_PROFILE = Path(__file__).with_name("fastdds_large_images.xml")
 PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
 # Fast DDS's default shared-memory segment (bytes): a larger message leaves the fast path
@@ -141,19 +143,15 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--measure", action="store_true",
                    help="measure the transport time with the default and the shipped profile")
-    p.add_argument("--resolution", nargs="+", default=["1280x720"], help="WIDTHxHEIGHT ...")
+    p.add_argument("--resolution", nargs="+", type=resolution_arg, default=[(1280, 720)],
+                   metavar="WxH", help="image sizes (default 1280x720)")
     p.add_argument("--encoding", choices=sorted(ENCODING_CHANNELS), default="mono8")
     p.add_argument("--frames", type=int, default=100, help="images per measurement")
     p.add_argument("--rate", type=float, default=15.0, help="images per second")
     p.add_argument("--json", default=None, help="also write the measurements here")
     p.add_argument("--role", choices=["pub", "sub"], help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    try:
-        sizes = [tuple(int(v) for v in r.split("x")) for r in args.resolution]
-        if any(len(s) != 2 or min(s) < 1 for s in sizes):
-            raise ValueError
-    except ValueError:
-        p.error(f"--resolution takes WIDTHxHEIGHT, got {' '.join(args.resolution)}")
+    sizes = args.resolution
     if args.frames < 1 or args.rate <= 0:
         p.error("--frames must be >= 1 and --rate > 0")
     if args.role:

@@ -28,12 +28,15 @@ import time
 
 import numpy as np
 
+from rsvo_ros.sim.synth import resolution_arg
+
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m rsvo_ros.ros.latency", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--rate", type=float, nargs="+", default=[15.0], help="input rates (Hz)")
-    p.add_argument("--resolution", default="1280x720")
+    p.add_argument("--resolution", type=resolution_arg, default="1280x720", metavar="WxH",
+                   help="image size (default 1280x720)")
     p.add_argument("--frames", type=int, default=60, help="frames per rate")
     p.add_argument("--motion", default="vehicle")
     p.add_argument("--motion-at-rate", action="store_true",
@@ -65,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--seed must be a non-negative integer, got {args.seed}")
     if not args.wait > 0:
         p.error(f"--wait must be a positive number of seconds, got {args.wait}")
-    w, h = (int(x) for x in args.resolution.split("x"))
+    w, h = args.resolution
 
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -161,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         # each frame with odometry: from its stamp to the odometry's arrival (ms)
         delays = {k: (got[s] - s / 1e9) * 1e3 for k, s in enumerate(sent) if s in got}
         lat = np.array(list(delays.values()))
-        row = {"rate_hz": rate, "resolution": args.resolution, "sent": len(sent),
+        row = {"rate_hz": rate, "resolution": f"{w}x{h}", "sent": len(sent),
                "odometry": len(lat),
                "latency_ms_median": float(np.median(lat)) if len(lat) else None,
                "latency_ms_p95": float(np.percentile(lat, 95)) if len(lat) else None,

@@ -23,6 +23,7 @@ Conventions: world frame y down (the loop lies in x-z), camera optical frame, po
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 
@@ -53,6 +54,20 @@ TEXTURE_SIZE = 1024  # texels per side of each (tiling) texture
 TEXELS_PER_M = 160.0
 
 RowPoseFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def resolution_arg(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` (positive whole numbers) as ``(width, height)``: the ``--resolution``
+    of every program that renders a synthetic sequence (``rsvo_synth``, the tools, the latency
+    and transport probes); an ``argparse`` type, so a bad size is a usage error."""
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        w = h = 0
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected WIDTHxHEIGHT in positive whole numbers, e.g. 640x360")
+    return w, h
 
 
 def default_line_delay(height: int) -> float:

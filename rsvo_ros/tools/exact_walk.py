@@ -39,9 +39,8 @@ from rsvo_ros.core.geometry import so3_exp, so3_log
 from rsvo_ros.odometry.frame import Observations
 from rsvo_ros.odometry.pipeline import PipelineOptions
 from rsvo_ros.odometry.window import WindowOdometry
-from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig, project_points
+from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig, project_points, resolution_arg
 from rsvo_ros.tools.replay import set_window_options, window_option_arg
-from rsvo_ros.tools.synth_bag import resolution_arg
 
 CHUNK_FRAMES = 10
 RAYS_PER_FRAME = 120  # scene points cast from each second frame

@@ -36,9 +36,8 @@ import numpy as np
 
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
 from rsvo_ros.odometry.tracker import MAX_DECIMATION, AutoDecimation
-from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
+from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig, resolution_arg
 from rsvo_ros.tools.replay import accuracy, set_window_options, window_option_arg
-from rsvo_ros.tools.synth_bag import resolution_arg
 from rsvo_ros.twoview.estimator import warm_up
 
 

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from rsvo_ros.ros import bagio
-from rsvo_ros.sim.synth import LENSES, MOTIONS, SequenceRenderer, SynthConfig
+from rsvo_ros.sim.synth import LENSES, MOTIONS, SequenceRenderer, SynthConfig, resolution_arg
 
 EXIT_USAGE = 2
 
@@ -84,19 +84,6 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
     elapsed = time.perf_counter() - t0
     return {"path": str(path), "frames": config.frames, "seconds": elapsed,
             "frames_per_second": config.frames / max(elapsed, 1e-9)}  # fmt: skip
-
-
-def resolution_arg(text: str) -> tuple[int, int]:
-    """``WIDTHxHEIGHT`` (positive whole numbers) as ``(width, height)``: the tools'
-    ``--resolution``."""
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        w = h = 0
-    if w <= 0 or h <= 0:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: expected WIDTHxHEIGHT in positive whole numbers, e.g. 640x360")
-    return w, h
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -47,9 +47,10 @@ def test_profile_env_sets_or_removes_the_profile_file(monkeypatch):
 def test_without_arguments_it_prints_the_profile_path(capsys):
     assert main([]) == 0
     assert capsys.readouterr().out.strip() == str(LARGE_IMAGES_PROFILE)
-    with pytest.raises(SystemExit):
-        main(["--measure", "--resolution", "1280-720"])
-    assert "WIDTHxHEIGHT" in capsys.readouterr().err
+    for bad in ("1280-720", "0x480", "640x-1"):  # the tools' parser (rsvo_synth's)
+        with pytest.raises(SystemExit):
+            main(["--measure", "--resolution", "1280x720", bad])
+        assert "WIDTHxHEIGHT in positive whole numbers" in capsys.readouterr().err
 
 
 def test_table_rows():

@@ -165,3 +165,16 @@ def test_the_probe_stops_with_a_clear_message_when_no_node_listens(tmp_path):
     assert "no node subscribed to /camera/image_raw" in proc.stderr
     assert "start rsvo_node first" in proc.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("bad", ["1280-720", "0x480", "x"])
+def test_a_bad_resolution_is_a_usage_error_before_ros_starts(bad, capsys):
+    """The probe's --resolution is the tools' (rsvo_synth's) parser: a malformed or empty size
+    is refused by argparse (exit 2, the expected form named), not a traceback later or a probe
+    of 0-pixel images."""
+    from rsvo_ros.ros.latency import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--resolution", bad, "--frames", "2"])
+    assert exc.value.code == 2
+    assert "WIDTHxHEIGHT in positive whole numbers" in capsys.readouterr().err
