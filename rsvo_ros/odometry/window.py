@@ -58,6 +58,7 @@ REFOUND_REASON = "re-found the map"  # a frame's reason where descriptors found 
 # a frame's reason where the last keyframe shared too few tracks for a pair and the frame was
 # recovered from the last tracked frame, made a keyframe late
 LATE_RECOVERY_REASON = "recovered with the pair estimator from the last tracked frame"
+MAX_MAPPING_LAG_S = 2.0  # WindowOptions.mapping_lag_s: longer holds the map back for nothing
 
 
 @dataclass
@@ -139,6 +140,14 @@ class WindowOptions:
     # against the map it has and picks up the refined map at its next frame; while mapping is
     # busy no new keyframe is made (ORB-SLAM's rule). False: inline (deterministic; the replay)
     async_mapping: bool = False
+    # > 0: a keyframe's window BA is picked up at the first frame stamped at least this many
+    # seconds after the keyframe (at the start of that frame, waiting for the mapper if it has
+    # not finished), so the map tracking sees, and every result, does not depend on how fast
+    # the machine is: a live node that processes every frame gives what the replay with the
+    # same setting gives. With async_mapping False the BA runs inline when the keyframe is made
+    # and is picked up as late (the replay's way to reproduce the node). 0: async mapping is
+    # picked up at the first frame after it finishes (timing-dependent), inline mapping at once
+    mapping_lag_s: float = 0.0
     # async mapping goes synchronous (waits for the mapper, maps keyframes inline) while
     # tracking is weak: inliers below this share of the median of the last frames (a fast turn
     # leaving the map; tracking against a map one keyframe behind lost it there)
@@ -286,8 +295,17 @@ class WindowOdometry:
         self._rates: deque = deque(maxlen=SHEAR_FRAMES_KEPT)
         if getattr(self, "_mapper", None) is not None:
             self._mapper.close()
-        self._mapper = Mapper(self) if self.options.async_mapping else None
+        lag = self.options.mapping_lag_s
+        if not (isinstance(lag, int | float | np.number) and 0 <= lag <= MAX_MAPPING_LAG_S):
+            raise ValueError(f"WindowOptions.mapping_lag_s must be a number of seconds in "
+                             f"[0, {MAX_MAPPING_LAG_S:g}], got {lag!r}")
+        self._mapper: Mapper | DeferredMapper | None = (
+            Mapper(self) if self.options.async_mapping
+            else DeferredMapper(self) if lag > 0 else None)
         self._pending_kf: KeyFrame | None = None  # submitted to the mapper, not yet picked up
+        # the frame tracked just after the pending keyframe: its ``after`` once picked up (the
+        # BA of the keyframe must not see it, as inline mapping's does not)
+        self._pending_after: FrameState | None = None
         self._picked: list[tuple[tuple[FrameState, FrameState], BAReport]] = []
         self._lock = threading.Lock()  # one mapping at a time; tracking reads atomic snapshots
         self.keyframe_log: dict[int, FrameState] = {}  # stamp -> refined keyframe state
@@ -422,7 +440,7 @@ class WindowOdometry:
         self._picked = []
         if self._weak and self._mapper is not None:
             self._mapper.wait_idle()  # track against the newest map (and map inline if weak)
-        self._pick_up_mapping()
+        self._pick_up_mapping(force=self._weak, stamp_ns=stamp_ns)
         result = self._track_map(stamp_ns, obs)
         if result is None:
             result = self._recover(stamp_ns, obs)
@@ -453,13 +471,26 @@ class WindowOdometry:
             return self._pending_kf
         return self.map.keyframes[-1] if self.map.keyframes else None
 
-    def _pick_up_mapping(self) -> None:
-        """Async mapping: a keyframe whose window BA finished since the last frame. The frames
+    def _pick_up_mapping(self, force: bool = True, stamp_ns: int | None = None) -> None:
+        """Async mapping: a keyframe whose window BA finished since the last frame (with
+        ``mapping_lag_s``, at the first frame ``stamp_ns`` that long after the keyframe,
+        waiting for it; ``force``: now, the caller has waited for the mapper). The frames
         tracked meanwhile (in the map as it was) move with the keyframe's correction, so the
         next prediction is in the refined map."""
         if self._mapper is None:
             return
-        done = self._mapper.finished()
+        lag = self.options.mapping_lag_s
+        if lag > 0 and self._pending_kf is not None:
+            kf_stamp = self._pending_kf.state.stamp_ns
+            if not force and stamp_ns is not None and stamp_ns > kf_stamp \
+                    and stamp_ns - kf_stamp < round(lag * 1e9):  # fmt: skip
+                return
+            self._mapper.wait_idle()
+        try:
+            done = self._mapper.finished()
+        except MappingError:
+            self._pending_kf = self._pending_after = None  # that keyframe is not mapped
+            raise
         if done is None:
             return
         kf, before, report, self._points = done
@@ -467,9 +498,13 @@ class WindowOdometry:
         after = kf.state.copy() if kf in self.map.keyframes else before.copy()
         # world-frame correction of the map around the keyframe (row 0, as the pipeline's)
         D = rigid_correction(self.row0_pose(before), self.row0_pose(after))
-        for st in (self._last, self._before):
+        follow = self._pending_after
+        self._pending_after = None
+        for st in (self._last, self._before, follow):
             if st is not None and np.isfinite(D).all():  # never a NaN pose
                 st.R, st.p = D[:3, :3] @ st.R, D[:3, :3] @ st.p + D[:3, 3]
+        if follow is not None and kf.after is None:
+            kf.after = follow  # for the next window BA, in the refined map as inline
         if self._last is not None and self._last.stamp_ns == after.stamp_ns:
             # the keyframe is still the last tracked frame: the next frame starts from its
             # refined state, turn rate and velocity too, as after inline mapping (with the
@@ -639,7 +674,10 @@ class WindowOdometry:
                               hessian=H, sigma2=sigma2, inlier_ids=obs.ids[ib][inl],
                               outlier_ids=obs.ids[ib][~inl])  # fmt: skip
         if last_kf.after is None and last_kf.state.stamp_ns < stamp_ns:
-            last_kf.after = state.copy()  # read by the next window BA
+            if last_kf is not self._pending_kf:
+                last_kf.after = state.copy()  # read by the next window BA
+            elif self._pending_after is None:  # its BA is running: set at the pick-up
+                self._pending_after = state.copy()
         inliers = int(inl.sum())
         if np.isfinite(self._err_median):
             self._err_medians.append(self._err_median)
@@ -1067,6 +1105,10 @@ def covariance_from_tracking(result: WindowResult) -> np.ndarray:
     return out if np.isfinite(out).all() else np.diag([1e2] * 3 + [1e1] * 3)
 
 
+class MappingError(RuntimeError):
+    """The window BA on the mapping thread raised (the cause is chained)."""
+
+
 class Mapper:
     """Runs :meth:`WindowOdometry.map_keyframe` on a background thread (the node's mapping
     path): tracking submits a keyframe when the mapper is idle and picks up the result with
@@ -1078,6 +1120,7 @@ class Mapper:
         self._job: tuple[KeyFrame, FrameState] | None = None
         # the keyframe, its state when submitted, the BA report and the map's points
         self._done: tuple[KeyFrame, FrameState, BAReport, tuple] | None = None
+        self._error: Exception | None = None  # what the last job raised, for the caller
         self._cv = threading.Condition()
         self._stop = False
         self._thread = threading.Thread(target=self._run, name="rsvo_mapping", daemon=True)
@@ -1098,10 +1141,16 @@ class Mapper:
 
     def finished(self) -> tuple[KeyFrame, FrameState, BAReport, tuple] | None:
         """The mapped keyframe, its state when it was submitted, the BA report and the
-        points for tracking, once."""
+        points for tracking, once. Raises :class:`MappingError` (once) if the job raised: on
+        the tracking thread, where the pipeline counts faults, instead of a thread that dies
+        and a keyframe that is never picked up (tracking then waited for it at every frame)."""
         with self._cv:
             done, self._done = self._done, None
-            return done
+            error, self._error = self._error, None
+        if error is not None:
+            raise MappingError(f"the window BA on the mapping thread failed: "
+                               f"{type(error).__name__}: {error}") from error
+        return done
 
     def replace_points(self, points: tuple[np.ndarray, np.ndarray]) -> None:
         """A result not picked up yet hands these points to tracking instead (the map's
@@ -1122,7 +1171,13 @@ class Mapper:
                 if self._stop:
                     return
                 kf, before = self._job
-            report, points = self.odometry._map(kf)
+            try:
+                report, points = self.odometry._map(kf)
+            except Exception as exc:  # noqa: BLE001 - handed to the tracking thread
+                with self._cv:
+                    self._job, self._error = None, exc
+                    self._cv.notify_all()
+                continue
             with self._cv:
                 self._job, self._done = None, (kf, before, report, points)
                 self._cv.notify_all()
@@ -1132,3 +1187,38 @@ class Mapper:
             self._stop = True
             self._cv.notify_all()
         self._thread.join(timeout=30.0)
+
+
+class DeferredMapper:
+    """:class:`Mapper`'s interface without a thread: the window BA runs when the keyframe is
+    submitted and its result waits to be picked up (``mapping_lag_s`` with inline
+    mapping: the replay gives what a node with the same lag gives, whatever the machine's
+    speed). The BA's time is spent in the keyframe's frame."""
+
+    def __init__(self, odometry: WindowOdometry):
+        self.odometry = odometry
+        self._done: tuple[KeyFrame, FrameState, BAReport, tuple] | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self._done is not None
+
+    def submit(self, kf: KeyFrame, state_before: FrameState) -> None:
+        if self._done is not None:
+            raise RuntimeError("the mapper is busy")
+        report, points = self.odometry._map(kf)
+        self._done = (kf, state_before, report, points)
+
+    def finished(self) -> tuple[KeyFrame, FrameState, BAReport, tuple] | None:
+        done, self._done = self._done, None
+        return done
+
+    def replace_points(self, points: tuple[np.ndarray, np.ndarray]) -> None:
+        if self._done is not None:
+            self._done = (*self._done[:3], points)
+
+    def wait_idle(self, timeout: float = 30.0) -> None:
+        """Nothing runs in the background."""
+
+    def close(self) -> None:
+        """Nothing to stop."""

@@ -53,7 +53,7 @@ from rsvo_ros.odometry.tracker import (
     refine_window_or_auto,
 )
 from rsvo_ros.odometry.twist import Twist, body_twist
-from rsvo_ros.odometry.window import WindowOptions
+from rsvo_ros.odometry.window import MAX_MAPPING_LAG_S, WindowOptions
 from rsvo_ros.ros import bagio
 from rsvo_ros.ros.camera_file import load_camera_file
 from rsvo_ros.ros.convert import (
@@ -508,6 +508,8 @@ def replay(cfg: ReplayConfig) -> dict:
         "uncertain_rotation_deg": (pipeline.chain.uncertain_rotation_deg
                                    if pipeline is not None else None),
         "async_mapping": options.window.async_mapping,
+        # each keyframe's BA picked up at the first frame this many s after it (0: at once)
+        "mapping_lag_s": options.window.mapping_lag_s,
         "angular_acceleration_std": options.window.map.prior_acc_rad_s2,
         "klt_window_px": options.tracker.window_px,  # the pyramid's KLT window (px)
         # tracking at 1/this of the images' resolution (1: full resolution)
@@ -1079,6 +1081,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--async-mapping", action="store_true",
                    help="window backend: map keyframes on a background thread as the live node "
                         "does (default: inline, deterministic)")
+    p.add_argument("--mapping-lag", type=float, default=0.0, metavar="S",
+                   help="window backend: pick up each keyframe's bundle adjustment at the "
+                        "first frame S seconds or more after the keyframe, as the live node "
+                        "with mapping_lag_s:=S does (inline, the BA held back: the node's "
+                        "odometry whatever its speed; with --async-mapping on the mapping "
+                        "thread); 0 (default): at once")
     p.add_argument("--angular-acceleration", type=float, default=ACCELERATION_STD_RAD_S2,
                    metavar="STD",
                    help="window backend, RS: std (rad/s^2) of the prior on each frame's angular "
@@ -1176,12 +1184,20 @@ def main(argv: list[str] | None = None) -> int:
         print("rsvo_replay: --line-delay-refine-frames below 30 gives too few blocks of frames "
               "to refine from; use 0 (off) or at least 30", file=sys.stderr)
         return EXIT_USAGE
+    if not 0 <= args.mapping_lag <= MAX_MAPPING_LAG_S:
+        print(f"rsvo_replay: --mapping-lag must be in [0, {MAX_MAPPING_LAG_S:g}] s, got "
+              f"{args.mapping_lag}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.mapping_lag and args.backend != "window":
+        print("rsvo_replay: --mapping-lag needs --backend window", file=sys.stderr)
+        return EXIT_USAGE
     options = PipelineOptions(motion_prior=not args.no_motion_prior, backend=args.backend,
                               line_delay_auto=auto, readout=args.readout_direction,
                               line_delay_auto_refine_frames=args.line_delay_refine_frames)
     if args.no_line_delay_rerun:
         options.line_delay_rerun_max_frames = 0
     options.window.async_mapping = args.async_mapping
+    options.window.mapping_lag_s = args.mapping_lag
     options.window.map.prior_acc_rad_s2 = args.angular_acceleration
     options.rotation_only_parallax_px = args.rotation_only_parallax
     options.uncertain_rotation_deg = uncertain

@@ -16,6 +16,7 @@ from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
 from rsvo_ros.odometry.window import (
     LATE_RECOVERY_REASON,
     REFOUND_REASON,
+    MappingError,
     WindowOdometry,
     WindowOptions,
 )
@@ -800,3 +801,119 @@ def test_the_frames_after_a_pair_recovery_try_to_re_find_the_remembered_map(fram
     # the re-found frames are in the memory's world: the trajectory goes on where it was
     # (measured 0.011 m ATE over the run; a frame posed in another world would be metres off)
     assert accuracy(gt, est)["ate_m"]["rmse"] < 0.02
+
+
+def _lagged_run(async_mapping: bool, lag: int, slow_keyframes: set[int] = frozenset(),
+                frames: int = 70):  # fmt: skip
+    """Exact-track walk (30 Hz) through the window odometry with ``mapping_lag_s`` = ``lag``;
+    the BA of the keyframes numbered in ``slow_keyframes`` is made to take 80 ms longer (on
+    the mapping thread: the machine slow for a moment). Returns every frame's state (row 0),
+    the frames where a keyframe was made and where a BA was picked up."""
+    tau = 3e-5
+    K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
+    states, X = _walk_states(frames, tau)
+    rng = np.random.default_rng(5)
+    wo = WindowOdometry(K, tau, WindowOptions(async_mapping=async_mapping,
+                                              mapping_lag_s=lag))
+    run_map = wo._map
+
+    def slow_map(kf, *a, **kw):
+        if kf is not None and kf.id in slow_keyframes:
+            time.sleep(0.08)
+        return run_map(kf, *a, **kw)
+
+    wo._map = slow_map
+    poses, keyframes, picked = [], [], []
+    try:
+        for k, st in enumerate(states):
+            Xc = (X - st.p) @ st.R
+            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
+                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            res = wo.track(st.stamp_ns, _obs_of(st, X[vis], vis, tau, rng, 0.3))
+            assert res.status in ("first", "held", "posed")
+            poses.append(wo.row0_pose(res.state))
+            if res.keyframe:
+                keyframes.append(k)
+            if res.ba_background:
+                picked.append(k)
+    finally:
+        wo.close()
+    return np.array(poses), keyframes, picked
+
+
+def test_a_mapping_lag_makes_async_mapping_independent_of_the_machines_speed():
+    """With ``mapping_lag_s`` every keyframe's window BA is picked up at the first frame that
+    long after the keyframe, waiting for the mapping thread if need be: a run's poses are
+    the same bits whether the BA is fast or slow for a moment, and the same as the mapping run
+    inline and held back as long (``DeferredMapper``, the replay's way to reproduce a node).
+    Without the lag the pick-up comes at the first frame after the BA finished, which a slow
+    BA moves."""
+    fast, kf_fast, picked_fast = _lagged_run(True, 0.05)
+    slow, kf_slow, picked_slow = _lagged_run(True, 0.05, slow_keyframes=set(range(100)))
+    deferred, kf_deferred, picked_deferred = _lagged_run(False, 0.05)
+    assert len(picked_fast) >= 4, picked_fast
+    np.testing.assert_array_equal(fast, slow)
+    np.testing.assert_array_equal(fast, deferred)
+    assert kf_fast == kf_slow == kf_deferred and picked_fast == picked_slow == picked_deferred
+    # every background keyframe is picked up two frames (67 ms) after it was made (the
+    # others, the first map's, were mapped inline in their own frame)
+    background = [k for k in kf_fast if k + 2 in picked_fast]
+    assert [k + 2 for k in background] == picked_fast
+    # the timing-dependent pick-up (lag 0): a slow BA is picked up later, and the poses move
+    _, _, picked0_fast = _lagged_run(True, 0)
+    _, _, picked0_slow = _lagged_run(True, 0, slow_keyframes=set(range(100)))
+    assert picked0_fast != picked0_slow
+
+
+@pytest.mark.parametrize("lag", [-0.1, float("nan"), 2.5, "0.05"])
+def test_a_bad_mapping_lag_is_refused(lag):
+    K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
+    with pytest.raises(ValueError, match=r"mapping_lag_s must be a number of seconds in \[0, 2\]"):
+        WindowOdometry(K, 3e-5, WindowOptions(mapping_lag_s=lag))
+
+
+@pytest.mark.parametrize("lag", [0.0, 0.05])
+def test_a_failing_window_ba_on_the_mapping_thread_is_raised_to_tracking_once(lag):
+    """An exception in a keyframe's BA on the mapping thread comes out of the ``track`` call
+    that picks it up (the pipeline counts it as a fault), once; that keyframe is dropped and
+    the next keyframes are mapped and picked up. Before, the thread died with it, the mapper
+    stayed busy (no keyframe ever again) and with a lag every frame waited 30 s for it."""
+    tau = 3e-5
+    K = np.array([[FOCAL, 0, 320.0], [0, FOCAL, 180.0], [0, 0, 1]])
+    states, X = _walk_states(70, tau)
+    rng = np.random.default_rng(5)
+    wo = WindowOdometry(K, tau, WindowOptions(async_mapping=True, mapping_lag_s=lag))
+    run_map, failed = wo._map, []
+
+    def failing_map(kf, *a, **kw):
+        if kf is not None and not failed and not wo.initialising:
+            failed.append(kf.id)
+            raise FloatingPointError("the BA diverged")
+        return run_map(kf, *a, **kw)
+
+    wo._map = failing_map
+    raised, picked = [], []
+    try:
+        for k, st in enumerate(states):
+            Xc = (X - st.p) @ st.R
+            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
+                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            t0 = time.monotonic()
+            try:
+                res = wo.track(st.stamp_ns, _obs_of(st, X[vis], vis, tau, rng, 0.3))
+            except MappingError as exc:
+                assert "FloatingPointError: the BA diverged" in str(exc)
+                assert isinstance(exc.__cause__, FloatingPointError)
+                raised.append(k)
+                continue
+            finally:
+                assert time.monotonic() - t0 < 5.0  # never the 30 s wait
+            assert np.isfinite(res.state.p).all()
+            if res.ba_background:
+                picked.append(k)
+            if lag == 0:
+                time.sleep(0.01)  # the thread's time to finish
+    finally:
+        wo.close()
+    assert len(failed) == 1 and len(raised) == 1, (failed, raised)
+    assert len([k for k in picked if k > raised[0]]) >= 2  # mapping goes on after it

@@ -1047,3 +1047,37 @@ def test_rsvo_calibrate_keeps_the_first_estimate_when_the_second_pass_fails(tmp_
     assert "kept the first estimate" in printed and "the second pass failed" in printed
     params = yaml.safe_load(out.read_text())["rsvo_node"]["ros__parameters"]
     assert params["line_delay"] == 4.2e-5
+
+
+def _tum_poses(path: Path) -> np.ndarray:
+    return np.array([[float(x) for x in ln.split()] for ln in path.read_text().splitlines()
+                     if ln.strip() and not ln.startswith("#")])
+
+
+def test_a_mapping_lag_replays_the_same_on_the_mapping_thread_and_inline(walk_bag, tmp_path,
+                                                                          capsys):
+    """--mapping-lag S picks up each keyframe's BA at the first frame S after it: on the
+    mapping thread (--async-mapping, as the node) and inline held back, the same trajectory
+    to the bit, and not the inline replay's (the frames meanwhile track against the map as it
+    was). A lag out of range is a usage error."""
+    runs = {"inline": [], "lag": ["--mapping-lag", "0.05"],
+            "lag_async": ["--mapping-lag", "0.05", "--async-mapping"]}
+    tum, summary = {}, {}
+    for name, extra in runs.items():
+        out = tmp_path / name
+        assert replay_main([str(walk_bag), "--output", str(out), "--no-progress",
+                            *extra]) == 0
+        tum[name] = _tum_poses(out / "trajectory.tum")
+        summary[name] = json.loads((out / "summary.json").read_text())
+    assert summary["lag"]["mapping_lag_s"] == summary["lag_async"]["mapping_lag_s"] == 0.05
+    assert summary["inline"]["mapping_lag_s"] == 0.0 and summary["lag_async"]["async_mapping"]
+    assert len(tum["lag"]) == len(tum["inline"]) >= 110
+    np.testing.assert_array_equal(tum["lag"], tum["lag_async"])
+    assert np.abs(tum["lag"] - tum["inline"]).max() > 1e-6
+    for bad in ("-0.1", "3", "nan"):
+        assert replay_main([str(walk_bag), "--output", str(tmp_path / "x"),
+                            "--mapping-lag", bad]) == 2
+        assert "--mapping-lag must be in [0, 2] s" in capsys.readouterr().err
+    assert replay_main([str(walk_bag), "--output", str(tmp_path / "x"), "--backend",
+                        "pairwise", "--mapping-lag", "0.05"]) == 2
+    assert "--mapping-lag needs --backend window" in capsys.readouterr().err
