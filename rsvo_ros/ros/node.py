@@ -65,6 +65,7 @@ from rsvo_ros.ros.params import (
     check_live_change,
     help_text,
     image_subscription,
+    integer_as_double,
     params_yaml,
     read_config,
 )
@@ -104,6 +105,15 @@ class RsvoNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__("rsvo_node", **kwargs)
+        # -p NAME:=0 for a double parameter: taken as 0.0 (rclpy's overrides, which
+        # declare_parameter reads; where rclpy keeps them elsewhere, its own refusal stands)
+        overrides = getattr(self, "_parameter_overrides", None)
+        if isinstance(overrides, dict):
+            for name in PARAMETERS:
+                if name in overrides:
+                    overrides[name] = integer_as_double(overrides[name])
+        self.add_pre_set_parameters_callback(
+            lambda params: [integer_as_double(p) for p in params])  # ros2 param set NAME 0
         for name, (default, desc) in PARAMETERS.items():
             self.declare_parameter(name, default, desc)
         self.p = read_config({name: self.get_parameter(name).value for name in PARAMETERS})

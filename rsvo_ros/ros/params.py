@@ -20,6 +20,7 @@ from rcl_interfaces.msg import (
 )
 from rclpy.exceptions import InvalidTopicNameException
 from rclpy.expand_topic_name import expand_topic_name
+from rclpy.parameter import Parameter
 from rclpy.validate_full_topic_name import validate_full_topic_name
 from scipy.spatial.transform import Rotation
 
@@ -289,6 +290,18 @@ for _name, (_default, _desc) in PARAMETERS.items():
     _desc.read_only = _name not in LIVE_PARAMETERS
     _desc.description += (" Can be changed while the node runs." if _name in LIVE_PARAMETERS
                           else " Read at start-up (read-only).")
+
+
+def integer_as_double(param: Parameter) -> Parameter:
+    """An integer given for one of the node's double parameters (``-p line_delay:=0``,
+    ``ros2 param set /rsvo_node diagnostics_period_s 1``), as that double: rclpy refuses it
+    otherwise ("expecting type 'DOUBLE'"), and ROS users write ``:=0``. Anything else as it
+    is (a string for a double is still refused by rclpy)."""
+    spec = PARAMETERS.get(param.name)
+    if spec is None or spec[1].type != ParameterType.PARAMETER_DOUBLE \
+            or param.type_ != Parameter.Type.INTEGER:  # fmt: skip
+        return param
+    return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
 
 
 def check_live_change(name: str, value) -> str:

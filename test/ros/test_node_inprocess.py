@@ -15,6 +15,7 @@ import yaml
 from conftest import ros_domain
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.srv import SetParameters
+from rclpy.exceptions import ParameterException
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -1129,3 +1130,40 @@ def test_a_line_delay_file_of_a_turned_camera_sets_its_readout_direction(tmp_pat
 def test_parameter_file_values_keep_their_type(value, text):
     assert _yaml_value(value) == text
     assert yaml.safe_load(f"x: {text}")["x"] == value
+
+
+def test_an_integer_for_a_double_parameter_is_taken_as_that_double(ros_context):
+    """`rsvo_node --ros-args -p mapping_lag_s:=0 -p line_delay:=0` and `ros2 param set
+    /rsvo_node diagnostics_period_s 2`: ROS parses those values as integers, which rclpy
+    refused for a double parameter ("expecting type 'DOUBLE'") and the node did not start.
+    They are the doubles 0.0 / 2.0 now, still within their ranges; a string stays refused."""
+    ctx = rclpy.Context()
+    ctx.init(args=["--ros-args", "-p", "mapping_lag_s:=0", "-p", "line_delay:=0",
+                   "-p", "path_publish_period_s:=1"], domain_id=ros_domain(5))
+    try:
+        node = RsvoNode(context=ctx)
+        try:
+            for name, value in (("mapping_lag_s", 0.0), ("line_delay", 0.0),
+                                ("path_publish_period_s", 1.0)):
+                got = node.get_parameter(name).value
+                assert got == value and isinstance(got, float), (name, got)
+            assert node.p["mapping_lag_s"] == 0.0
+        finally:
+            node.destroy_node()
+        ctx2 = rclpy.Context()
+        ctx2.init(args=["--ros-args", "-p", "mapping_lag_s:=3"], domain_id=ros_domain(6))
+        try:
+            with pytest.raises(ParameterException, match="mapping_lag_s"):
+                RsvoNode(context=ctx2)  # 3.0 s: out of its range [0, 2]
+        finally:
+            ctx2.try_shutdown()
+    finally:
+        ctx.try_shutdown()
+    h = Harness(ros_context, [Parameter("model", value="gs")])
+    try:
+        assert _set_parameter(h, "diagnostics_period_s", 2).successful
+        assert h.node.get_parameter("diagnostics_period_s").value == 2.0
+        assert h.node._diag_timer.timer_period_ns == 2_000_000_000
+        assert not _set_parameter(h, "diagnostics_period_s", "2").successful
+    finally:
+        h.close()
