@@ -22,6 +22,9 @@ motion's own frames, the walk's at 30 Hz, are fed at ``--rate``). ``--motion`` r
 hand-held sequence instead of the walk; ``--decimation D`` tracks at 1/D of the resolution,
 ``--decimation auto`` (with ``--drop``) starts at full resolution and steps down as the node's
 ``tracking_decimation_mode: auto`` does (:class:`AutoDecimation`; the steps are listed).
+``--mapping async`` picks each window BA up when it finishes (``WindowOptions.mapping_lag_s``
+0, the figures of the sessions before the forty-second); the node's own pick-up since then is
+``--window-option mapping_lag_s=0.05`` (its parameter ``mapping_lag_s``).
 """
 
 from __future__ import annotations
