@@ -702,8 +702,8 @@ class WindowOdometry:
             result.keyframe = True
             self._tracked_at_kf = inliers
             if self._mapper is not None and not self._weak:
-                self._pending_kf = kf
-                self._mapper.submit(kf, state.copy())
+                self._mapper.submit(kf, state.copy())  # (DeferredMapper: the BA runs here)
+                self._pending_kf = kf  # once submitted: a BA that raised leaves none pending
             else:
                 before = state.copy()
                 result.ba = self.map_keyframe(kf)

@@ -60,6 +60,14 @@ def test_landmarks_are_triangulated_with_each_rows_camera_and_re_anchored(rng):
     assert report.rejected == 0 and report.cost < 1e-9
 
 
+def _visible(state: FrameState, X: np.ndarray) -> np.ndarray:
+    """Indices of the world points X (at most the first 300) in front of the frame and
+    within its field of view (|x/z| < 0.6, |y/z| < 0.35: a 640x360 image at FOCAL)."""
+    Xc = (X - state.p) @ state.R
+    return np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
+                          & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+
+
 def _walk_states(n: int, tau: float) -> tuple[list[FrameState], np.ndarray]:
     """Frames of a smooth walk (1 m/s, swaying, turning) at 30 Hz at the reference row, and
     the RS velocities of each, plus world points ahead of the path."""
@@ -94,9 +102,7 @@ def test_window_backend_follows_a_smooth_walk_on_exact_tracks(tau):
     wo = WindowOdometry(K, tau)
     est, gt, first = {}, {}, None
     for k, st in enumerate(states):
-        Xc = (X - st.p) @ st.R
-        vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                             & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+        vis = _visible(st, X)
         res = wo.track(st.stamp_ns, _obs_of(st, X[vis], vis, tau, rng, 0.3))
         gt[st.stamp_ns] = st.pose(-180.0 * tau)  # row 0: 180 rows above the reference row
         if res.status == "posed":
@@ -114,9 +120,7 @@ def _run_exact(states, X, tau, options, rng):
     wo = WindowOdometry(K, tau, options)
     est, gt, acc = {}, {}, []
     for st in states:
-        Xc = (X - st.p) @ st.R
-        vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                             & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+        vis = _visible(st, X)
         res = wo.track(st.stamp_ns, _obs_of(st, X[vis], vis, tau, rng, 0.3))
         gt[st.stamp_ns] = st.pose(-180.0 * tau)
         if res.status == "posed":
@@ -419,9 +423,7 @@ def test_a_weak_keyframe_is_mapped_on_the_tracking_path_and_the_next_frame_track
     mapper.submit = spy_submit
     try:
         for k, st in enumerate(states[:weak + 2]):
-            Xc = (X - st.p) @ st.R
-            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            vis = _visible(st, X)
             if k == weak:
                 mapper.wait_idle()  # (a keyframe only while the mapper is idle)
                 vis = vis[: int(0.2 * len(vis))]
@@ -466,9 +468,7 @@ def test_a_lost_frame_is_recovered_from_the_last_tracked_frame_made_a_keyframe_l
     defaults = WindowOptions()
     est, gt, results = {}, {}, {}
     for k, st in enumerate(states):
-        Xc = (X - st.p) @ st.R
-        vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                             & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+        vis = _visible(st, X)
         ids = vis.copy()
         if k >= turn:  # the tracks found again: new ids (the same ones from frame to frame)
             ids = vis + 100_000
@@ -530,9 +530,7 @@ def test_a_new_map_after_a_loss_re_finds_the_lost_one_before_it_starts(hinted):
     for k, st in enumerate(states):
         points, desc, offset = (far, desc_far, 500_000) if away <= k < back else \
             (X, desc_near, 100_000 if k >= back else 0)  # fmt: skip
-        Xc = (points - st.p) @ st.R
-        vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                             & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+        vis = _visible(st, points)
         obs = _obs_of(st, points[vis], vis + offset, tau, rng, 0.3)
         obs.describe = lambda d=desc[vis]: (d, np.ones(len(d), bool))
         hint = st.pose(-180.0 * tau) if hinted else None  # the chain's row-0 pose: the truth
@@ -583,9 +581,7 @@ def test_a_pair_recovery_in_a_turn_on_the_spot_takes_the_recent_speed(turn_rule)
     wo = WindowOdometry(K, tau, options)
 
     def obs_of(st):
-        Xc = (X - st.p) @ st.R
-        vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                             & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+        vis = _visible(st, X)
         return _obs_of(st, X[vis], vis, tau, rng, 0.3)
 
     reasons = []
@@ -617,9 +613,7 @@ def test_a_tracking_pose_that_explains_under_half_its_points_is_not_taken():
         rng = np.random.default_rng(1)
         wo = WindowOdometry(K, tau, WindowOptions(min_inlier_ratio=ratio))
         for k, st in enumerate(states):
-            Xc = (X - st.p) @ st.R
-            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            vis = _visible(st, X)
             obs = _obs_of(st, X[vis], vis, tau, rng, 0.3)
             if k == len(states) - 1:  # the last frame: 60 % of its tracks are wrong matches
                 bad = rng.random(len(obs)) < 0.6
@@ -724,9 +718,7 @@ def test_the_inlier_threshold_can_follow_the_image_noise_but_not_a_diverged_fram
         wo = WindowOdometry(K, tau, WindowOptions(track_inlier_sigmas=sigmas))
         share = []
         for k, st in enumerate(states):
-            Xc = (X - st.p) @ st.R
-            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            vis = _visible(st, X)
             obs = _obs_of(st, X[vis], vis, tau, rng, 1.0)
             if k == len(states) - 1:  # 60 % wrong matches
                 bad = rng.random(len(obs)) < 0.6
@@ -769,9 +761,7 @@ def test_the_frames_after_a_pair_recovery_try_to_re_find_the_remembered_map(fram
     wo = WindowOdometry(K, tau, options)
 
     def obs_of(k, st):
-        Xc = (X - st.p) @ st.R
-        vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                             & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+        vis = _visible(st, X)
         ids = vis + np.where((k >= renamed_from) & (vis % 2 == 1), 100_000, 0)
         obs = _obs_of(st, X[vis], ids, tau, rng, 0.3)
         obs.describe = lambda d=desc[vis]: (d, np.ones(len(d), bool))
@@ -803,7 +793,7 @@ def test_the_frames_after_a_pair_recovery_try_to_re_find_the_remembered_map(fram
     assert accuracy(gt, est)["ate_m"]["rmse"] < 0.02
 
 
-def _lagged_run(async_mapping: bool, lag: int, slow_keyframes: set[int] = frozenset(),
+def _lagged_run(async_mapping: bool, lag: float, slow_keyframes: set[int] = frozenset(),
                 frames: int = 70):  # fmt: skip
     """Exact-track walk (30 Hz) through the window odometry with ``mapping_lag_s`` = ``lag``;
     the BA of the keyframes numbered in ``slow_keyframes`` is made to take 80 ms longer (on
@@ -826,9 +816,7 @@ def _lagged_run(async_mapping: bool, lag: int, slow_keyframes: set[int] = frozen
     poses, keyframes, picked = [], [], []
     try:
         for k, st in enumerate(states):
-            Xc = (X - st.p) @ st.R
-            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            vis = _visible(st, X)
             res = wo.track(st.stamp_ns, _obs_of(st, X[vis], vis, tau, rng, 0.3))
             assert res.status in ("first", "held", "posed")
             poses.append(wo.row0_pose(res.state))
@@ -895,9 +883,7 @@ def test_a_failing_window_ba_on_the_mapping_thread_is_raised_to_tracking_once(la
     raised, picked = [], []
     try:
         for k, st in enumerate(states):
-            Xc = (X - st.p) @ st.R
-            vis = np.flatnonzero((Xc[:, 2] > 0.5) & (np.abs(Xc[:, 0] / Xc[:, 2]) < 0.6)
-                                 & (np.abs(Xc[:, 1] / Xc[:, 2]) < 0.35))[:300]  # fmt: skip
+            vis = _visible(st, X)
             t0 = time.monotonic()
             try:
                 res = wo.track(st.stamp_ns, _obs_of(st, X[vis], vis, tau, rng, 0.3))
