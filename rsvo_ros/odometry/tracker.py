@@ -72,6 +72,18 @@ PHOTOMETRIC_PATCH = 7  # px: the grey level of a tracked point is its patch's me
 # "Re-tracking a fast turn from the image's shift")
 RETRY_BELOW_SHARE = 0.7
 GLOBAL_SHIFT_SIDE_PX = 320
+# In a turn (the last image tracked from its shift) a failed first KLT pass costs 2-3 times a
+# kept one (its tracks run to the iteration limit on every level). Where the image has moved
+# by SHIFT_FIRST_WINDOWS KLT windows or more, KLT from no motion is first tried on
+# PROBE_FEATURES features spread over the list (each feature is tracked on its own, so they
+# come out as in the full pass); where under PROBE_FAILS_BELOW of them are kept, the full pass
+# would keep under RETRY_BELOW_SHARE and the shift's attempt would follow anyway, so that one
+# is made first and the failed pass is saved. Taking the shift's tracks where KLT alone keeps
+# its own (the shift's attempt first on every such frame) made the walks 1.3x worse (README,
+# "A turn's frames: the failed pass skipped")
+SHIFT_FIRST_WINDOWS = 2.0
+PROBE_FEATURES = 64
+PROBE_FAILS_BELOW = 0.35
 
 
 def check_refine_window(px: int | None, name: str = "refine_window_px",
@@ -284,6 +296,7 @@ class FeatureTracker:
         self._flow = np.zeros((0, 2), np.float32)
         self._flow_dt = self._stamp_ns = None
         self._brightness_rate = None
+        self.last_shift = None
 
     @property
     def refine_window_px(self) -> int:
@@ -338,6 +351,7 @@ class FeatureTracker:
         o = self.options
         empty = TrackedPair(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64))
         self.last_photometric = None
+        turning = self.last_shift is not None  # the last image came from a shift
         self.last_shift = None
         dt = None
         if stamp_ns is not None and self._stamp_ns is not None:
@@ -352,9 +366,19 @@ class FeatureTracker:
         else:
             guess = self._predicted_motion(dt)
             rate = self._brightness_rate
-            p1f, good = self._track_photometric(img, guess)
-            if o.shift_retry and good.sum() < RETRY_BELOW_SHARE * len(good):
-                p1f, good = self._retry_from_shift(img, p1f, good, rate)
+            shift = None
+            first = False  # tracked from the shift first (a turn's next frame)
+            if o.shift_retry and turning and guess is None:
+                shift = global_shift(self._prev_img, img)
+                first = shift is not None \
+                    and np.hypot(*shift) >= SHIFT_FIRST_WINDOWS * o.window_px \
+                    and self._klt_alone_fails(img)
+                if first:
+                    p1f, good = self._shift_first(img, shift, rate)
+            if not first:
+                p1f, good = self._track_photometric(img, guess)
+                if o.shift_retry and good.sum() < RETRY_BELOW_SHARE * len(good):
+                    p1f, good = self._retry_from_shift(img, p1f, good, rate, shift)
             pair = TrackedPair(self._pts[good].astype(float), p1f[good].astype(float),
                                self._ids[good].copy())  # fmt: skip
             self._flow = (p1f[good] - self._pts[good]).astype(np.float32)
@@ -371,14 +395,16 @@ class FeatureTracker:
         self._prev_img = img
         return pair
 
-    def _klt(self, prev: np.ndarray, img: np.ndarray,
-             guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def _klt(self, prev: np.ndarray, img: np.ndarray, guess: np.ndarray | None,
+             subset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Pyramidal KLT of the features from ``prev`` into ``img`` with the forward-backward
-        check and the full-resolution refinement: (n, 2) positions and (n,) which are good."""
+        check and the full-resolution refinement: (n, 2) positions and (n,) which are good.
+        ``subset``: only these features' indices, without the refinement (which moves a kept
+        track but does not decide whether it is kept)."""
         o = self.options
         lk = dict(winSize=(o.window_px, o.window_px), maxLevel=o.pyramid_levels,
                   criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-        p0 = self._pts.reshape(-1, 1, 2)
+        p0 = (self._pts if subset is None else self._pts[subset]).reshape(-1, 1, 2)
         # after a gap, both ways from the prediction: back from where the point landed,
         # started where the predicted motion takes it back to
         if guess is not None:
@@ -394,7 +420,7 @@ class FeatureTracker:
         good &= np.isfinite(p1f).all(axis=1)
         good &= (p1f[:, 0] >= 0) & (p1f[:, 0] <= w - 1) & (p1f[:, 1] >= 0)
         good &= p1f[:, 1] <= h - 1
-        if self._refine_px and good.any():
+        if self._refine_px and good.any() and subset is None:
             p1r, st3, _ = cv2.calcOpticalFlowPyrLK(
                 prev, img, p0[good], p1[good],
                 winSize=(self._refine_px,) * 2, maxLevel=0, criteria=lk["criteria"],
@@ -460,15 +486,23 @@ class FeatureTracker:
         levels = np.percentile(x, [5.0, 95.0])
         return fit[0], fit[1], _changed(fit, levels), levels
 
+    def _far(self, shift: tuple[float, float] | None) -> bool:
+        """Whether a measured image shift is worth tracking from: at least half the KLT
+        window."""
+        return shift is not None and np.hypot(*shift) >= 0.5 * self.options.window_px
+
     def _retry_from_shift(self, img: np.ndarray, p1f: np.ndarray, good: np.ndarray,
-                          rate: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray]:
+                          rate: tuple[float, float] | None,
+                          shift: tuple[float, float] | None = None,
+                          ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         """KLT kept too few tracks into ``img``: track every feature again from the global
-        shift between the previous image and ``img`` (:func:`global_shift`) if it is at least
-        half the KLT window, with the brightness change ``rate`` the first attempt started
-        from; the attempt that keeps more tracks, and :attr:`last_shift` where it is the new
-        one."""
-        shift = global_shift(self._prev_img, img)
-        if shift is None or np.hypot(*shift) < 0.5 * self.options.window_px:
+        shift between the previous image and ``img`` (:func:`global_shift`, or ``shift``
+        where it is already measured) if it is at least half the KLT window, with the
+        brightness change ``rate`` the first attempt started from; the attempt that keeps
+        more tracks, and :attr:`last_shift` where it is the new one."""
+        if shift is None:
+            shift = global_shift(self._prev_img, img)
+        if not self._far(shift):
             return p1f, good
         first = (p1f, good, self._brightness_rate, self.last_photometric)
         self._brightness_rate = rate
@@ -477,6 +511,43 @@ class FeatureTracker:
         if goods.sum() <= good.sum():
             _, _, self._brightness_rate, self.last_photometric = first
             return p1f, good
+        self.last_shift = shift
+        return p1s, goods
+
+    def _klt_alone_fails(self, img: np.ndarray) -> bool:
+        """Whether KLT from no motion keeps under ``PROBE_FAILS_BELOW`` of ``PROBE_FEATURES``
+        features spread over the list (evenly spaced indices; the features were detected cell
+        by cell over the image), tried into ``img`` as the first attempt's first pass is (in
+        the last image's brightness change where ``photometric_compensation`` is on); False
+        with too few features to tell."""
+        n = len(self._pts)
+        if n < 2 * PROBE_FEATURES:
+            return False
+        subset = np.linspace(0, n - 1, PROBE_FEATURES).round().astype(np.int64)
+        mapped = _map_levels(img, self._brightness_rate) \
+            if self.options.photometric_compensation else img  # fmt: skip
+        _, good = self._klt(self._prev_img, mapped, None, subset)
+        return good.mean() < PROBE_FAILS_BELOW
+
+    def _shift_first(self, img: np.ndarray, shift: tuple[float, float],
+                     rate: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray]:
+        """The attempts of a turn's frame in the other order, where KLT from no motion is
+        known to fail (:meth:`_klt_alone_fails`): every feature is tracked from ``shift``
+        first; where that keeps at least ``RETRY_BELOW_SHARE`` of the tracks it is taken (as
+        :meth:`_retry_from_shift` would take it after the failed pass), else KLT from no
+        motion is tried too, with the same brightness change ``rate``, and the attempt that
+        keeps more tracks is taken (KLT's own on a tie, as :meth:`_retry_from_shift`)."""
+        guess = np.tile(np.float32(shift), (len(self._pts), 1)).reshape(-1, 1, 2)
+        p1s, goods = self._track_photometric(img, guess)
+        if goods.sum() >= RETRY_BELOW_SHARE * len(goods):
+            self.last_shift = shift
+            return p1s, goods
+        shifted = (self._brightness_rate, self.last_photometric)
+        self._brightness_rate = rate
+        p1f, good = self._track_photometric(img, None)
+        if goods.sum() <= good.sum():
+            return p1f, good
+        self._brightness_rate, self.last_photometric = shifted
         self.last_shift = shift
         return p1s, goods
 

@@ -15,6 +15,7 @@ from rsvo_ros.odometry.tracker import (
     AUTO_DROP_SHARE,
     AUTO_SETTLE_IMAGES,
     AUTO_SPAN_IMAGES,
+    PROBE_FEATURES,
     AutoDecimation,
     FeatureTracker,
     TrackerOptions,
@@ -169,6 +170,85 @@ def test_a_turn_past_klts_reach_is_tracked_again_from_the_images_shift(wide):
                for k, x in enumerate((0, 150, 160))]
     assert [r.image_shift is not None for r in results] == [False, True, False]
     assert abs(results[1].image_shift[0] + 150.0) < 4.0
+
+
+def _counted_klt(tracker):
+    """Records ``tracker``'s KLT passes (photometric rounds included) in ``calls``: the number
+    of features each was tried on."""
+    calls = []
+    klt = tracker._klt
+
+    def counted(prev, img, guess, subset=None):
+        calls.append(len(tracker._pts) if subset is None else len(subset))
+        return klt(prev, img, guess, subset)
+
+    tracker._klt = counted
+    return calls
+
+
+def test_a_turns_failed_klt_pass_is_skipped_where_a_probe_shows_it_would_fail(wide,
+                                                                               monkeypatch):
+    # a pan of 150 px per frame (past KLT's reach) in 640-px images: the first such frame
+    # needs two full passes (KLT from no motion, which fails, then from the shift); in the
+    # frames after it KLT from no motion is tried on PROBE_FEATURES features first, fails
+    # there, and only the pass from the shift is made in full (constant brightness: no
+    # photometric rounds to count)
+    options = TrackerOptions(max_features=200, photometric_compensation=False)
+    runs = {}
+    for skip in (True, False):
+        if not skip:  # the same frames with every probe saying "KLT alone may keep them"
+            monkeypatch.setattr(FeatureTracker, "_klt_alone_fails", lambda self, img: False)
+        tracker = FeatureTracker(options)
+        calls = _counted_klt(tracker)
+        tracker.track(wide[:, 0:640].copy(), 0)
+        passes, pairs = [], []
+        for k, x in enumerate((150, 300, 450), start=1):
+            before = len(calls)
+            pairs.append(tracker.track(wide[:, x:x + 640].copy(), k * 33_333_333))
+            passes.append(calls[before:])
+            assert tracker.last_shift is not None and abs(tracker.last_shift[0] + 150.0) < 4.0
+        runs[skip] = (passes, pairs, tracker, calls)
+    (passes, pairs, tracker, calls), (passes_all, pairs_all, _, _) = runs[True], runs[False]
+    assert all(len(p) == 2 and min(p) > PROBE_FEATURES for p in passes_all), passes_all
+    assert len(passes[0]) == 2 and min(passes[0]) > PROBE_FEATURES  # no turn before it
+    for p in passes[1:]:
+        assert p[0] == PROBE_FEATURES and len(p) == 2 and p[1] > PROBE_FEATURES, passes
+    for pair, pair_all in zip(pairs, pairs_all, strict=True):  # the same tracks, to the bit
+        assert np.array_equal(pair.pts_curr, pair_all.pts_curr)
+        assert np.array_equal(pair.ids, pair_all.ids)
+        moved = np.abs(pair.pts_curr[:, 0] - pair.pts_prev[:, 0] + 150.0) < 1.0
+        assert moved.sum() >= 100 and moved.mean() > 0.95
+    monkeypatch.undo()
+    # the turn slows to within KLT's reach (20 px, under two windows): no probe, KLT alone
+    before = len(calls)
+    pair = tracker.track(wide[:, 470:1110].copy(), 4 * 33_333_333)
+    assert len(calls) - before == 1 and calls[-1] > PROBE_FEATURES
+    assert tracker.last_shift is None
+    assert np.median(pair.pts_curr[:, 0] - pair.pts_prev[:, 0]) == pytest.approx(-20.0, abs=0.2)
+    # a shift measured wrong (150 px where the image moved 20): the probe keeps its tracks,
+    # so KLT alone is tried in full first and kept, as without the probe
+    tracker = FeatureTracker(options)
+    tracker.track(wide[:, 0:640].copy(), 0)
+    tracker.track(wide[:, 150:790].copy(), 33_333_333)
+    assert tracker.last_shift is not None
+    monkeypatch.setattr("rsvo_ros.odometry.tracker.global_shift", lambda a, b: (150.0, 0.0))
+    calls = _counted_klt(tracker)
+    pair = tracker.track(wide[:, 170:810].copy(), 2 * 33_333_333)
+    assert calls[0] == PROBE_FEATURES and len(calls) == 2 and tracker.last_shift is None
+    assert np.median(pair.pts_curr[:, 0] - pair.pts_prev[:, 0]) == pytest.approx(-20.0, abs=0.2)
+    # and where a probe said "fails" but the pass from the (wrong) shift keeps few tracks,
+    # KLT from no motion is made in full as well, and kept for keeping more
+    monkeypatch.setattr(FeatureTracker, "_klt_alone_fails", lambda self, img: True)
+    tracker = FeatureTracker(options)
+    tracker.track(wide[:, 0:640].copy(), 0)
+    monkeypatch.setattr("rsvo_ros.odometry.tracker.global_shift", lambda a, b: (-150.0, 0.0))
+    tracker.track(wide[:, 150:790].copy(), 33_333_333)
+    assert tracker.last_shift is not None
+    monkeypatch.setattr("rsvo_ros.odometry.tracker.global_shift", lambda a, b: (150.0, 0.0))
+    calls = _counted_klt(tracker)
+    pair = tracker.track(wide[:, 170:810].copy(), 2 * 33_333_333)
+    assert len(calls) == 2 and min(calls) > PROBE_FEATURES and tracker.last_shift is None
+    assert np.median(pair.pts_curr[:, 0] - pair.pts_prev[:, 0]) == pytest.approx(-20.0, abs=0.2)
 
 
 @pytest.mark.slow
