@@ -46,16 +46,12 @@ from rsvo_ros.odometry.tracker import (
     RETRY_BELOW_SHARE,
     refine_window_or_auto,
 )
-from rsvo_ros.odometry.window import MAX_MAPPING_LAG_S
+from rsvo_ros.odometry.window import MAX_MAPPING_LAG_S, NODE_MAPPING_LAG_S
 from rsvo_ros.ros.camera_file import load_camera_file
 from rsvo_ros.ros.convert import CameraIntrinsics
 from rsvo_ros.twoview.estimator import MODELS
 
 QOS_CHOICES = ("auto", "reliable", "best_effort")
-# the node's mapping lag: on 52 walks at 15 and 30 Hz 1.02x the inline replay's ATE in
-# geometric mean, and the pick-up waited for the mapping thread at 2-3 keyframes of 300 frames
-# (5-10 ms; README, "A fixed mapping lag")
-NODE_MAPPING_LAG_S = 0.05
 LOST_CHOICES = ("large_covariance", "none")
 LINE_DELAY_MODES = ("fixed", "auto")
 DECIMATION_MODES = ("fixed", "auto")

@@ -5,7 +5,9 @@
 For each rolling-shutter case of :mod:`rsvo_ros.tools.line_delay_table` the sequence is
 rendered (``--frames`` frames: the table's 150 and more, so that the refinement after 150
 processed frames has frames to come at), then fed to :class:`OdometryPipeline` as the node runs
-it: async mapping, ``line_delay_auto``, no re-runs, the refinement in its own niced process,
+it: async mapping with the node's mapping lag (``--mapping-lag``, default the node's
+``mapping_lag_s``, 0.05 s; 0: each window BA picked up when it finishes, as the node before the
+forty-second session), ``line_delay_auto``, no re-runs, the refinement in its own niced process,
 frames arriving at ``--rate`` Hz with the node's newest-frame policy (a frame that arrives
 while another is processed waits; a newer one replaces it, and the replaced one goes to the
 refinement's second pass, as the node hands it over; ``--no-keep-dropped``: not). Prints one
@@ -26,20 +28,22 @@ import sys
 import time
 
 from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
+from rsvo_ros.odometry.window import MAX_MAPPING_LAG_S, NODE_MAPPING_LAG_S
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.line_delay_table import CASES
 from rsvo_ros.tools.line_delay_table import within_target as within
 
 
 def run_case(motion: str, severity: float, seed: int, line_delay: float, frames: int,
-             rate: float, refine_frames: int = 150,
-             keep_dropped: bool = True) -> dict:  # fmt: skip
+             rate: float, refine_frames: int = 150, keep_dropped: bool = True,
+             mapping_lag_s: float = NODE_MAPPING_LAG_S) -> dict:  # fmt: skip
     renderer = SequenceRenderer(SynthConfig(frames=frames, motion=motion, severity=severity,
                                             seed=seed, line_delay=line_delay))  # fmt: skip
     images = [(round(f.stamp * 1e9), f.image) for f in renderer]  # rendered before the clock
     options = PipelineOptions(line_delay_auto=True, line_delay_rerun_max_frames=0,
                               line_delay_auto_refine_frames=refine_frames)  # fmt: skip
     options.window.async_mapping = True
+    options.window.mapping_lag_s = mapping_lag_s
     pipe = OdometryPipeline(renderer.K, None, 0.0, options)
     t0, k, processed = time.perf_counter(), 0, 0
     while k < len(images):
@@ -64,6 +68,7 @@ def run_case(motion: str, severity: float, seed: int, line_delay: float, frames:
     calibrator = ref["first_line_delay_s"] if "first_line_delay_s" in ref else at_end
     return {"case": f"{motion}_sev{severity:g}_seed{seed}_ld{line_delay * 1e6:g}us",
             "line_delay_true_s": line_delay, "frames": frames, "processed": processed,
+            "mapping_lag_s": pipe.window.options.mapping_lag_s,  # the one in use
             "running_s": running, "calibrator_s": calibrator,
             "calibrator_windows": ref.get("first_windows"),
             "final_s": pipe.line_delay_estimate.line_delay_s,
@@ -83,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-keep-dropped", action="store_true",
                    help="do not hand the dropped frames to the refinement (the node before "
                         "the twenty-sixth session)")
+    p.add_argument("--mapping-lag", type=float, default=NODE_MAPPING_LAG_S, metavar="S",
+                   help=f"WindowOptions.mapping_lag_s ({NODE_MAPPING_LAG_S:g}, the node's "
+                        f"default; 0: each window BA picked up when it finishes)")
     p.add_argument("--cases", type=int, default=None, metavar="N",
                    help="only the first N rolling-shutter cases")
     p.add_argument("--json", default=None, metavar="FILE", help="also write the rows here")
@@ -91,12 +99,16 @@ def main(argv: list[str] | None = None) -> int:
         print("live_line_delay: --rate must be > 0, --frames >= 2 and --cases >= 1",
               file=sys.stderr)
         return 2
+    if not 0 <= args.mapping_lag <= MAX_MAPPING_LAG_S:
+        print(f"live_line_delay: --mapping-lag must be in [0, {MAX_MAPPING_LAG_S:g}] s, got "
+              f"{args.mapping_lag:g}", file=sys.stderr)
+        return 2
     cases = [c for c in CASES if c[4] > 0][:args.cases]
     rows = []
     for group, motion, severity, seed, ld in cases:
         row = {"group": group, **run_case(motion, severity, seed, ld, args.frames, args.rate,
-                                          args.refine_frames,
-                                          not args.no_keep_dropped)}  # fmt: skip
+                                          args.refine_frames, not args.no_keep_dropped,
+                                          args.mapping_lag)}  # fmt: skip
         rows.append(row)
         print(json.dumps(row), flush=True)
     if args.json:

@@ -73,6 +73,7 @@ def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
     row = json.loads(out.read_text().splitlines()[0])
     assert row["case"] == "walk_sev1_seed0_ld20us" and row["frames"] == 24
     assert 1 <= row["processed"] <= 24 and row["refinement"] is None
+    assert row["mapping_lag_s"] == 0.05  # the node's default
     assert row["status"] == "collecting" and row["final_s"] is None  # 24 frames: too few
     text = capsys.readouterr().out
     assert "the calibrator's estimate over all its windows within 10 % on 0 of 1 " \
@@ -82,3 +83,8 @@ def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
     assert live_within(5.4e-5, 5e-5) and not live_within(None, 5e-5)
     assert live_main(["--rate", "0"]) == 2
     assert live_main(["--cases", "0"]) == 2  # no case: refused, not a crash on no rows
+    assert live_main(["--mapping-lag", "-0.1"]) == 2
+    assert live_main(["--mapping-lag", "3"]) == 2
+    assert live_main(["--cases", "1", "--frames", "12", "--rate", "60", "--refine-frames", "0",
+                      "--mapping-lag", "0", "--json", str(out)]) == 0
+    assert json.loads(out.read_text().splitlines()[0])["mapping_lag_s"] == 0.0
