@@ -13,6 +13,9 @@ got no odometry), which frames got none (``missing_frames``) and which were the 
 twentieth (``tail_frames``, ``[frame, delay_ms]``: the delay p95's stretch), and the live ATE
 against the frames' ground truth (``ate_m``; ``--seed`` picks the rendered sequence, a row's
 ``seed``). Start the node first, e.g. ``rsvo_node --ros-args -p line_delay:=5e-5``.
+``--bag DIR`` also writes the frames as sent (their wall-clock stamps, camera info, ground
+truth and the rendering's line delay) as a rosbag2, after the run (one rate): where the node
+dropped no frame, ``rsvo_replay DIR --mapping-lag 0.05`` (the node's lag) gives its poses.
 
 ``--summary RESULT.json ...`` prints the results of earlier runs as the README's table, each
 row against issue 14's targets (``launch_scripts/latency_table.sh`` runs and summarises).
@@ -48,6 +51,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="the rendered sequence's seed (rsvo_synth's; default 0, the one every "
                         "table so far used)")
     p.add_argument("--json", default=None, help="also write the results here")
+    p.add_argument("--bag", default=None, metavar="DIR",
+                   help="also write the frames as sent (their stamps) as a rosbag2 here, "
+                        "after the run: the replay of what the node got (one --rate)")
     p.add_argument("--node-pid", type=int, default=None,
                    help="the node's process id (default: the process running rsvo_node)")
     p.add_argument("--wait", type=float, default=120.0, metavar="S",
@@ -68,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--seed must be a non-negative integer, got {args.seed}")
     if not args.wait > 0:
         p.error(f"--wait must be a positive number of seconds, got {args.wait}")
+    if args.bag is not None and (len(args.rate) != 1 or os.path.exists(args.bag)):
+        p.error(f"--bag takes one --rate and a path that does not exist, got {args.bag} "
+                f"with {len(args.rate)} rates")
     w, h = args.resolution
 
     import rclpy
@@ -86,8 +95,9 @@ def main(argv: list[str] | None = None) -> int:
                           frame_rate=rate, seed=args.seed)
         renderer = SequenceRenderer(cfg)
         frames = list(renderer)
-        return ([f.image.tobytes() for f in frames], [f.p_world_cam.copy() for f in frames],
-                renderer.K, cfg.rate_hz)
+        poses = [(f.R_world_cam.copy(), f.p_world_cam.copy()) for f in frames]
+        return ([f.image.tobytes() for f in frames], [p for _, p in poses], renderer.K,
+                cfg.rate_hz, poses, cfg.tau)
 
     rendered = None if args.motion_at_rate else render(None)
     rclpy.init()
@@ -134,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.spin_once(node, timeout_sec=0.05)
     results = []
     for rate in args.rate:
-        images, truth, K, motion_rate = rendered or render(rate)
+        images, truth, K, motion_rate, poses, tau = rendered or render(rate)
         got.clear()
         positions.clear()
         sent = []
@@ -197,12 +207,44 @@ def main(argv: list[str] | None = None) -> int:
         row.update(live_ate({s: truth[k] for k, s in enumerate(sent)}, positions))
         results.append(row)
         print(json.dumps(row))
+        if args.bag is not None:
+            write_sent_bag(args.bag, sent, images, K, w, h, poses, tau)
+            print(f"wrote the frames as sent to {args.bag}", file=sys.stderr)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
+
+
+def write_sent_bag(path, stamps_ns: list[int], images: list[bytes], K: np.ndarray,
+                   width: int, height: int, poses: list[tuple[np.ndarray, np.ndarray]],
+                   line_delay: float) -> None:
+    """The frames as the probe sent them, as a rosbag2 (sqlite3) at ``path``: ``mono8``
+    images (``images``, row-major bytes) and camera info stamped ``stamps_ns``, the ground
+    truth (``poses``: ``(R_world_cam, p_world_cam)`` per frame) and the rendering's line
+    delay, in the layout ``rsvo_synth`` writes."""
+    from rsvo_ros.ros import bagio
+
+    if not len(stamps_ns) == len(images) == len(poses):
+        raise ValueError(f"{len(stamps_ns)} stamps, {len(images)} images and {len(poses)} "
+                         f"poses: one of each per frame")
+    ts = bagio.typestore()
+    with bagio.open_writer(path, "sqlite3") as writer:
+        writer.set_custom_data(bagio.LINE_DELAY_KEY, format(float(line_delay), ".12g"))
+        c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
+        c_info = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE,
+                                       typestore=ts)  # fmt: skip
+        c_gt = writer.add_connection(bagio.GROUND_TRUTH_TOPIC, bagio.ODOMETRY_TYPE,
+                                     typestore=ts)  # fmt: skip
+        for stamp, data, (R, p) in zip(stamps_ns, images, poses, strict=True):
+            image = np.frombuffer(data, np.uint8).reshape(height, width)
+            writer.write(c_img, stamp, bagio.serialize(bagio.image_msg(stamp, image)))
+            writer.write(c_info, stamp, bagio.serialize(
+                bagio.camera_info_msg(stamp, K, width, height)))
+            writer.write(c_gt, stamp, bagio.serialize(bagio.odometry_msg(
+                stamp, R, p, bagio.WORLD_FRAME, bagio.CAMERA_FRAME)))  # fmt: skip
 
 
 def live_ate(truth: dict[int, np.ndarray], odometry: dict[int, np.ndarray]) -> dict:

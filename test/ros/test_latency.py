@@ -178,3 +178,39 @@ def test_a_bad_resolution_is_a_usage_error_before_ros_starts(bad, capsys):
         main(["--resolution", bad, "--frames", "2"])
     assert exc.value.code == 2
     assert "WIDTHxHEIGHT in positive whole numbers" in capsys.readouterr().err
+
+
+def test_the_frames_as_sent_replay_as_the_pipeline_ran_on_them(tmp_path):
+    """``--bag``: the probe's frames with the stamps it sent them at (a wall clock's, not the
+    rendering's), their camera info, ground truth and line delay as a rosbag2 that
+    rsvo_replay reads; replayed, its poses are the pipeline's on those frames and stamps."""
+    from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
+    from rsvo_ros.ros.bagio import custom_data
+    from rsvo_ros.ros.latency import write_sent_bag
+    from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
+    from rsvo_ros.tools.compare import read_tum
+    from rsvo_ros.tools.replay import main as replay_main
+
+    cfg = SynthConfig(frames=24, motion="walk", width=320, height=240, seed=3)
+    renderer = SequenceRenderer(cfg)
+    frames = list(renderer)
+    rng = np.random.default_rng(0)  # a live sender's stamps: the interval with jitter
+    stamps = [1_000_000_000_000 + round((k / cfg.rate_hz + rng.uniform(0, 3e-3)) * 1e9)
+              for k in range(len(frames))]
+    bag = tmp_path / "sent"
+    write_sent_bag(bag, stamps, [f.image.tobytes() for f in frames], renderer.K, 320, 240,
+                   [(f.R_world_cam, f.p_world_cam) for f in frames], cfg.tau)
+    assert float(custom_data(bag)["rsvo.line_delay"]) == pytest.approx(cfg.tau)
+    out = tmp_path / "replay"
+    assert replay_main([str(bag), "--output", str(out), "--no-progress"]) == 0
+    replayed = read_tum(out / "trajectory.tum")
+    pipe = OdometryPipeline(renderer.K, None, cfg.tau, PipelineOptions())
+    direct = {s: pipe.process(s, f.image).T_world_cam for s, f in zip(stamps, frames,
+                                                                       strict=True)}
+    pipe.close()
+    posed = {s: T for s, T in direct.items() if T is not None}
+    assert len(posed) >= 20 and sorted(replayed) == sorted(posed)
+    for s, T in posed.items():
+        assert np.allclose(replayed[s][:3, 3], T[:3, 3], atol=1e-6), s
+    with pytest.raises(ValueError, match="one of each per frame"):
+        write_sent_bag(tmp_path / "short", stamps[:3], [], renderer.K, 320, 240, [], cfg.tau)
