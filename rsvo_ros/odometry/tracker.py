@@ -370,9 +370,7 @@ class FeatureTracker:
             first = False  # tracked from the shift first (a turn's next frame)
             if o.shift_retry and turning and guess is None:
                 shift = global_shift(self._prev_img, img)
-                first = shift is not None \
-                    and np.hypot(*shift) >= SHIFT_FIRST_WINDOWS * o.window_px \
-                    and self._klt_alone_fails(img)
+                first = self._far(shift, SHIFT_FIRST_WINDOWS) and self._klt_alone_fails(img)
                 if first:
                     p1f, good = self._shift_first(img, shift, rate)
             if not first:
@@ -486,10 +484,10 @@ class FeatureTracker:
         levels = np.percentile(x, [5.0, 95.0])
         return fit[0], fit[1], _changed(fit, levels), levels
 
-    def _far(self, shift: tuple[float, float] | None) -> bool:
-        """Whether a measured image shift is worth tracking from: at least half the KLT
-        window."""
-        return shift is not None and np.hypot(*shift) >= 0.5 * self.options.window_px
+    def _far(self, shift: tuple[float, float] | None, windows: float = 0.5) -> bool:
+        """Whether a measured image shift is at least ``windows`` KLT windows (half a window:
+        worth tracking from)."""
+        return shift is not None and np.hypot(*shift) >= windows * self.options.window_px
 
     def _retry_from_shift(self, img: np.ndarray, p1f: np.ndarray, good: np.ndarray,
                           rate: tuple[float, float] | None,

@@ -88,16 +88,15 @@ def main(argv: list[str] | None = None) -> int:
     from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 
     def render(rate: float | None):
-        """The frames' bytes and ground-truth positions, the motion sampled at ``rate`` (None:
-        its own rate), the camera matrix and the rate the motion was sampled at; rendered
-        before publishing, which must keep time."""
+        """The frames' bytes and ground-truth poses ``(R_world_cam, p_world_cam)``, the motion
+        sampled at ``rate`` (None: its own rate), the camera matrix, the rate the motion was
+        sampled at and the line delay; rendered before publishing, which must keep time."""
         cfg = SynthConfig(frames=args.frames, motion=args.motion, width=w, height=h,
                           frame_rate=rate, seed=args.seed)
         renderer = SequenceRenderer(cfg)
         frames = list(renderer)
         poses = [(f.R_world_cam.copy(), f.p_world_cam.copy()) for f in frames]
-        return ([f.image.tobytes() for f in frames], [p for _, p in poses], renderer.K,
-                cfg.rate_hz, poses, cfg.tau)
+        return [f.image.tobytes() for f in frames], poses, renderer.K, cfg.rate_hz, cfg.tau
 
     rendered = None if args.motion_at_rate else render(None)
     rclpy.init()
@@ -144,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.spin_once(node, timeout_sec=0.05)
     results = []
     for rate in args.rate:
-        images, truth, K, motion_rate, poses, tau = rendered or render(rate)
+        images, poses, K, motion_rate, tau = rendered or render(rate)
         got.clear()
         positions.clear()
         sent = []
@@ -204,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
                "node_frames": {k: n - counts0.get(k, 0) for k, n in _frame_counts(diag).items()},
                # the motion per frame: sampled at this rate, or the motion's own frames
                "motion_rate_hz": motion_rate, "seed": args.seed}
-        row.update(live_ate({s: truth[k] for k, s in enumerate(sent)}, positions))
+        row.update(live_ate({s: poses[k][1] for k, s in enumerate(sent)}, positions))
         results.append(row)
         print(json.dumps(row))
         if args.bag is not None:
