@@ -80,10 +80,14 @@ GLOBAL_SHIFT_SIDE_PX = 320
 # would keep under RETRY_BELOW_SHARE and the shift's attempt would follow anyway, so that one
 # is made first and the failed pass is saved. Taking the shift's tracks where KLT alone keeps
 # its own (the shift's attempt first on every such frame) made the walks 1.3x worse (README,
-# "A turn's frames: the failed pass skipped")
+# "A turn's frames: the failed pass skipped"). The probe's share follows the full pass's
+# closely (1280x720 15 Hz walks 0, 2108, 2110: where the probe kept under 0.55, the full pass
+# kept at most 0.64; 64 features drawn at random from a true 0.70 read under 0.55 once in
+# 150); at 0.55 it saves the failed pass on 43, 39, 26 of those walks' 48, 47, 36 probed frames
+# (32, 37, 19 at 0.35), with the same tracks (README, "A turn's probe at 0.55")
 SHIFT_FIRST_WINDOWS = 2.0
 PROBE_FEATURES = 64
-PROBE_FAILS_BELOW = 0.35
+PROBE_FAILS_BELOW = 0.55
 
 
 def check_refine_window(px: int | None, name: str = "refine_window_px",

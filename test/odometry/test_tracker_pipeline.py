@@ -15,6 +15,7 @@ from rsvo_ros.odometry.tracker import (
     AUTO_DROP_SHARE,
     AUTO_SETTLE_IMAGES,
     AUTO_SPAN_IMAGES,
+    PROBE_FAILS_BELOW,
     PROBE_FEATURES,
     AutoDecimation,
     FeatureTracker,
@@ -249,6 +250,27 @@ def test_a_turns_failed_klt_pass_is_skipped_where_a_probe_shows_it_would_fail(wi
     pair = tracker.track(wide[:, 170:810].copy(), 2 * 33_333_333)
     assert len(calls) == 2 and min(calls) > PROBE_FEATURES and tracker.last_shift is None
     assert np.median(pair.pts_curr[:, 0] - pair.pts_prev[:, 0]) == pytest.approx(-20.0, abs=0.2)
+
+
+@pytest.mark.parametrize("still_rows, fails", [(0.45, True), (0.75, False)])
+def test_the_probe_reads_the_share_the_full_klt_pass_would_keep(wide, still_rows, fails):
+    # the top rows of the next image stay where they were, the rest moved 150 px (past KLT's
+    # reach): KLT from no motion keeps about the still share of the features; the probe's
+    # PROBE_FEATURES read the same share, and it says "fails" below PROBE_FAILS_BELOW (0.55)
+    prev = wide[:, 0:640].copy()
+    img = wide[:, 150:790].copy()
+    cut = int(still_rows * len(img))
+    img[:cut] = prev[:cut]
+    tracker = FeatureTracker(TrackerOptions(max_features=200, photometric_compensation=False))
+    tracker.track(prev, 0)
+    assert tracker.num_tracks >= 2 * PROBE_FEATURES
+    _, good = tracker._klt(prev, img, None)
+    subset = np.linspace(0, tracker.num_tracks - 1, PROBE_FEATURES).round().astype(np.int64)
+    _, probe = tracker._klt(prev, img, None, subset)
+    assert abs(good.mean() - still_rows) < 0.1
+    assert abs(probe.mean() - good.mean()) < 0.1
+    assert (probe.mean() < PROBE_FAILS_BELOW) == fails
+    assert tracker._klt_alone_fails(img) == fails
 
 
 @pytest.mark.slow
