@@ -374,11 +374,12 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
 
 @nb.njit(**JIT)
 def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
-              robust, mu, p2, acc_p2, col, n_cols, iterations):  # fmt: skip
+              robust, mu, p2, acc_p2, col, n_cols, iterations, rel_tol=1e-8):  # fmt: skip
     """Levenberg-Marquardt over the window: the free frame parameters (``col``) and every
     landmark's inverse depth, the landmarks eliminated by the Schur complement (their blocks
-    are 1 x 1). Returns the new R, p, w, v, acc, rho, the residuals (n_obs, 2), the final cost
-    and the iterations run."""
+    are 1 x 1); it stops after ``iterations``, or once an accepted step lowers the cost by no
+    more than the fraction ``rel_tol``. Returns the new R, p, w, v, acc, rho, the residuals
+    (n_obs, 2), the final cost and the iterations run."""
     R, p, w, v, acc, rho = R.copy(), p.copy(), w.copy(), v.copy(), acc.copy(), rho.copy()
     K, M = R.shape[0], rho.shape[0]
     # every acceleration held (the default): the loops stop after the 12 other parameters
@@ -480,7 +481,7 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
                 rel = (cost - c_new) / max(cost, 1e-300)
                 R, p, w, v, acc, rho, cost = R_c, p_c, w_c, v_c, acc_c, rho_c, c_new
                 lam = max(lam / 3.0, 1e-9)
-                accepted = rel > 1e-8
+                accepted = rel > rel_tol
                 break
             lam *= 4.0
         if not accepted:

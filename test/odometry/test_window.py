@@ -60,6 +60,33 @@ def test_landmarks_are_triangulated_with_each_rows_camera_and_re_anchored(rng):
     assert report.rejected == 0 and report.cost < 1e-9
 
 
+def test_the_window_ba_stops_once_a_step_gains_less_than_its_tolerance(rng):
+    # three keyframes of noisy observations (0.5 px) from a perturbed start: with no
+    # tolerance LM runs until a step gains nothing; with the default (MapOptions.ba_rel_tol)
+    # it stops sooner, at a cost within a thousandth of the converged one
+    tau = 40e-6
+    X = np.column_stack([rng.uniform(-2, 2, 120), rng.uniform(-1, 1, 120),
+                         rng.uniform(3, 8, 120)])  # fmt: skip
+    ids = np.arange(120)
+    states = [FrameState(k * 10**8, so3_exp([0, 0.02 * k, 0]), np.array([0.3 * k, 0, 0.1 * k]),
+                         np.array([0.1, 0.4, 0.0]), np.array([2.0, 0.0, 0.5])) for k in range(3)]
+    reports = {}
+    for tol in (0.0, MapOptions().ba_rel_tol):
+        m = LocalMap(FOCAL, MapOptions(window_size=3, ba_iterations=50, ba_rel_tol=tol))
+        noise = np.random.default_rng(7)
+        for k, st in enumerate(states):
+            start = st.copy()
+            if k == 2:  # the newest keyframe starts 3 cm and 0.5 deg off
+                start.p = start.p + [0.03, -0.02, 0.01]
+                start.R = start.R @ so3_exp([0.0, 0.009, 0.0])
+            m.add_keyframe(KeyFrame(k, start, _obs_of(st, X, ids, tau, noise, 0.5)))
+        reports[tol] = m.optimize()
+    full, stopped = reports[0.0], reports[MapOptions().ba_rel_tol]
+    assert MapOptions().ba_rel_tol > 0
+    assert stopped.iterations < full.iterations <= 50
+    assert full.cost <= stopped.cost <= full.cost * (1 + 1e-3)
+
+
 def _visible(state: FrameState, X: np.ndarray) -> np.ndarray:
     """Indices of the world points X (at most the first 300) in front of the frame and
     within its field of view (|x/z| < 0.6, |y/z| < 0.35: a 640x360 image at FOCAL)."""
