@@ -50,7 +50,8 @@ class MapOptions:
     # ... or fewer: the BA stops once a step lowers its cost by no more than this fraction.
     # On the 1280x720 walks' windows the cost falls by 2e-5 at the fifth step, 1e-6 at the
     # seventh (medians), and 10 steps were run on 55 of 71 windows with the solver's own
-    # 1e-8; stopping at 1e-5 (README, "The window BA stops when it has converged")
+    # 1e-8; stopping at 1e-5 (README, "The window BA stops when it has converged"). 0: until
+    # a step gains nothing
     ba_rel_tol: float = 1e-5
     # each keyframe's velocity prior, centred on the motion between its neighbouring frames
     # (RS structure from motion alone is degenerate: under near-constant velocity a sheared
