@@ -30,9 +30,6 @@ import numpy as np
 from rsvo_ros.odometry import rs_projection
 from rsvo_ros.odometry.frame import KeyFrame
 
-# the compiled solver's own stop: a step that lowers the cost by no more than this fraction
-WINDOW_LM_REL_TOL = 1e-8
-
 ACCELERATION_STD_RAD_S2 = 50.0  # the default prior std of a frame's angular acceleration
 
 
@@ -140,7 +137,7 @@ class WindowSolution:
 
 
 def solve_window(prob: WindowProblem, iterations: int,
-                 rel_tol: float = WINDOW_LM_REL_TOL) -> WindowSolution:
+                 rel_tol: float = rs_projection.WINDOW_LM_REL_TOL) -> WindowSolution:
     """The window BA's solver: Levenberg-Marquardt with a Schur complement on the inverse
     depths, compiled (:func:`rsvo_ros.odometry.rs_projection.window_lm`), for ``iterations``
     or until a step lowers the cost by no more than the fraction ``rel_tol``. The README

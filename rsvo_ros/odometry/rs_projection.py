@@ -49,6 +49,9 @@ FRAME_PARAMS = 15
 MIN_DEPTH = 1e-6  # a point this close to (or behind) the camera plane gives no residual
 RHO_MIN, RHO_MAX = 1e-4, 1e3  # inverse depths are kept inside these bounds
 LAMBDA_MAX = 1e10
+# the window LM's default stop: an accepted step that lowers the cost by no more than this
+# fraction (MapOptions.ba_rel_tol sets the window BA's own)
+WINDOW_LM_REL_TOL = 1e-8
 
 
 # --------------------------------------------------------------------------- small algebra
@@ -374,7 +377,8 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
 
 @nb.njit(**JIT)
 def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal,
-              robust, mu, p2, acc_p2, col, n_cols, iterations, rel_tol=1e-8):  # fmt: skip
+              robust, mu, p2, acc_p2, col, n_cols, iterations,
+              rel_tol=WINDOW_LM_REL_TOL):  # fmt: skip
     """Levenberg-Marquardt over the window: the free frame parameters (``col``) and every
     landmark's inverse depth, the landmarks eliminated by the Schur complement (their blocks
     are 1 x 1); it stops after ``iterations``, or once an accepted step lowers the cost by no

@@ -151,6 +151,29 @@ def odometry_msg(stamp_ns: int, R: np.ndarray, p: np.ndarray, frame_id: str, chi
     )  # fmt: skip
 
 
+def frame_connections(writer, ts, image_type: str = IMAGE_TYPE) -> tuple:
+    """The connections of a recorded camera in ``rsvo_synth``'s layout, in this order: its
+    images (``image_type`` on ``IMAGE_TOPIC``, or on ``IMAGE_TOPIC + "/compressed"`` for a
+    CompressedImage), camera info and ground truth (typestore ``ts``)."""
+    topic = IMAGE_TOPIC if image_type == IMAGE_TYPE else IMAGE_TOPIC + "/compressed"
+    return (writer.add_connection(topic, image_type, typestore=ts),
+            writer.add_connection(CAMERA_INFO_TOPIC, CAMERA_INFO_TYPE, typestore=ts),
+            writer.add_connection(GROUND_TRUTH_TOPIC, ODOMETRY_TYPE, typestore=ts))
+
+
+def write_frame(writer, connections: tuple, stamp_ns: int, image, K: np.ndarray, width: int,
+                height: int, R: np.ndarray, p: np.ndarray, lens: LensModel | None = None,
+                linear: np.ndarray | None = None, angular: np.ndarray | None = None) -> None:
+    """One frame into :func:`frame_connections`: the image message ``image``, its camera info
+    (``K``, the image size, ``lens``) and the ground truth (``R``, ``p`` world <- camera, the
+    velocities where given), all stamped ``stamp_ns``."""
+    c_img, c_info, c_gt = connections
+    writer.write(c_img, stamp_ns, serialize(image))
+    writer.write(c_info, stamp_ns, serialize(camera_info_msg(stamp_ns, K, width, height, lens)))
+    writer.write(c_gt, stamp_ns, serialize(odometry_msg(stamp_ns, R, p, WORLD_FRAME, CAMERA_FRAME,
+                                                        linear=linear, angular=angular)))
+
+
 def serialize(msg) -> bytes:
     return typestore().serialize_cdr(msg, msg.__msgtype__)
 

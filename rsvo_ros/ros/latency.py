@@ -232,18 +232,11 @@ def write_sent_bag(path, stamps_ns: list[int], images: list[bytes], K: np.ndarra
     ts = bagio.typestore()
     with bagio.open_writer(path, "sqlite3") as writer:
         writer.set_custom_data(bagio.LINE_DELAY_KEY, format(float(line_delay), ".12g"))
-        c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
-        c_info = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE,
-                                       typestore=ts)  # fmt: skip
-        c_gt = writer.add_connection(bagio.GROUND_TRUTH_TOPIC, bagio.ODOMETRY_TYPE,
-                                     typestore=ts)  # fmt: skip
+        connections = bagio.frame_connections(writer, ts)
         for stamp, data, (R, p) in zip(stamps_ns, images, poses, strict=True):
             image = np.frombuffer(data, np.uint8).reshape(height, width)
-            writer.write(c_img, stamp, bagio.serialize(bagio.image_msg(stamp, image)))
-            writer.write(c_info, stamp, bagio.serialize(
-                bagio.camera_info_msg(stamp, K, width, height)))
-            writer.write(c_gt, stamp, bagio.serialize(bagio.odometry_msg(
-                stamp, R, p, bagio.WORLD_FRAME, bagio.CAMERA_FRAME)))  # fmt: skip
+            bagio.write_frame(writer, connections, stamp, bagio.image_msg(stamp, image), K, width,
+                              height, R, p)
 
 
 def live_ate(truth: dict[int, np.ndarray], odometry: dict[int, np.ndarray]) -> dict:

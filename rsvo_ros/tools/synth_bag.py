@@ -57,26 +57,17 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
                                                               ".12g"))
         writer.set_custom_data("rsvo.frame_rate", format(float(config.rate_hz), ".12g"))
         writer.set_custom_data("rsvo.movers", str(config.movers))
-        if compressed is None:
-            c_img = writer.add_connection(bagio.IMAGE_TOPIC, bagio.IMAGE_TYPE, typestore=ts)
-        else:
-            c_img = writer.add_connection(bagio.IMAGE_TOPIC + "/compressed",
-                                          bagio.COMPRESSED_IMAGE_TYPE, typestore=ts)
+        if compressed is not None:
             writer.set_custom_data("rsvo.compressed", compressed)
-        c_info = writer.add_connection(bagio.CAMERA_INFO_TOPIC, bagio.CAMERA_INFO_TYPE,
-                                       typestore=ts)  # fmt: skip
-        c_gt = writer.add_connection(bagio.GROUND_TRUTH_TOPIC, bagio.ODOMETRY_TYPE, typestore=ts)
+        connections = bagio.frame_connections(
+            writer, ts, bagio.IMAGE_TYPE if compressed is None else bagio.COMPRESSED_IMAGE_TYPE)
         for frame in renderer:
             stamp_ns = round(frame.stamp * 1e9)
             img = bagio.image_msg(stamp_ns, frame.image) if compressed is None else \
                 bagio.compressed_image_msg(stamp_ns, frame.image, compressed)
-            writer.write(c_img, stamp_ns, bagio.serialize(img))
-            writer.write(c_info, stamp_ns, bagio.serialize(
-                bagio.camera_info_msg(stamp_ns, K, config.width, config.height,
-                                      config.lens_model)))
-            writer.write(c_gt, stamp_ns, bagio.serialize(bagio.odometry_msg(
-                stamp_ns, frame.R_world_cam, frame.p_world_cam, bagio.WORLD_FRAME,
-                bagio.CAMERA_FRAME, linear=frame.v, angular=frame.w)))  # fmt: skip
+            bagio.write_frame(writer, connections, stamp_ns, img, K, config.width, config.height,
+                              frame.R_world_cam, frame.p_world_cam, config.lens_model,
+                              linear=frame.v, angular=frame.w)
             if bar is not None:
                 bar.update(1)
     if bar is not None:
