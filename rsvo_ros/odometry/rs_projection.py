@@ -84,17 +84,34 @@ def _row_pose(R, p, w, v, a, s):
 # --------------------------------------------------------------------------- one observation
 
 
+@nb.njit(**JIT, inline="always")
+def _in_row_camera(R, p, w, v, a, s, X):
+    """World point ``X`` in the camera of row time ``s``: ``q = R^T (X - p)``,
+    ``Y = q - s v``, ``E = Exp(-s w_s)`` and its right Jacobian, ``Xc = E Y``."""
+    d = (X[0] - p[0], X[1] - p[1], X[2] - p[2])
+    q = _mtv(R, d)
+    Y = (q[0] - s * v[0], q[1] - s * v[1], q[2] - s * v[2])
+    E, Jr = _exp_jr(_scale(-s, _turn_rate(w, a, s)))
+    return q, Y, E, Jr, _mv(E, Y)
+
+
+@nb.njit(**JIT, inline="always")
+def _residual(R, p, w, v, a, s, X, x_obs, focal):
+    """:func:`_observe`'s residual alone (the same bits; no derivatives)."""
+    Xc = _in_row_camera(R, p, w, v, a, s, X)[4]
+    if Xc[2] < MIN_DEPTH:
+        return 0.0, 0.0, False
+    iz = 1.0 / Xc[2]
+    ux, uy = Xc[0] * iz, Xc[1] * iz
+    return focal * (ux - x_obs[0]), focal * (uy - x_obs[1]), True
+
+
 @nb.njit(**JIT)
 def _observe(R, p, w, v, a, s, X, x_obs, focal, Jf, JX):
     """Residual (2,) in px of world point ``X`` seen at normalized ``x_obs`` in the row ``s`` of
     a frame; fills ``Jf`` (2, 15) with its derivative by the frame's parameters and ``JX``
     (2, 3) by ``X``. Returns (ex, ey, ok): ok False behind the camera."""
-    d = (X[0] - p[0], X[1] - p[1], X[2] - p[2])
-    q = _mtv(R, d)  # R^T (X - p)
-    Y = (q[0] - s * v[0], q[1] - s * v[1], q[2] - s * v[2])
-    phi = _scale(-s, _turn_rate(w, a, s))
-    E, Jr = _exp_jr(phi)
-    Xc = _mv(E, Y)
+    q, Y, E, Jr, Xc = _in_row_camera(R, p, w, v, a, s, X)
     if Xc[2] < MIN_DEPTH:
         return 0.0, 0.0, False
     iz = 1.0 / Xc[2]
@@ -122,15 +139,22 @@ def _observe(R, p, w, v, a, s, X, x_obs, focal, Jf, JX):
     return ex, ey, True
 
 
-@nb.njit(**JIT)
-def _landmark(Ra, pa, wa, va, aa, sa, xa, rho, JA, Jrho):
-    """World point of an anchored inverse-depth landmark and its derivatives: ``JA`` (3, 15)
-    by the anchor frame's parameters, ``Jrho`` (3,) by ``rho``."""
+@nb.njit(**JIT, inline="always")
+def _anchor_point(Ra, pa, wa, va, aa, sa, xa, rho):
+    """World point ``X`` of an anchored inverse-depth landmark, with the anchor row's
+    bearing ``b``, its rotation ``Exp(s_a w_s)`` and right Jacobian, and ``m = s_a v + E b``."""
     b = (xa[0] / rho, xa[1] / rho, 1.0 / rho)
     Ea, Jra = _exp_jr(_scale(sa, _turn_rate(wa, aa, sa)))
     Eb = _mv(Ea, b)
     m = _add(_scale(sa, va), Eb)
-    X = _add(pa, _mv(Ra, m))
+    return _add(pa, _mv(Ra, m)), b, Ea, Jra, m
+
+
+@nb.njit(**JIT)
+def _landmark(Ra, pa, wa, va, aa, sa, xa, rho, JA, Jrho):
+    """World point of an anchored inverse-depth landmark and its derivatives: ``JA`` (3, 15)
+    by the anchor frame's parameters, ``Jrho`` (3,) by ``rho``."""
+    X, b, Ea, Jra, m = _anchor_point(Ra, pa, wa, va, aa, sa, xa, rho)
     # dX/dtheta_a = -R_a [m]x ; dX/dp_a = I ; dX/dw_a = -s_a R_a E_a [b]x J_r ; dX/dv_a = s_a R_a
     Rm = _skew_mul(m, ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))  # [m]x
     RaM = _mm(Ra, Rm)
@@ -263,35 +287,45 @@ def track_frame(R, p, w, v, a, X, x_obs, s, focal, robust, prior_mu, prior_p2, a
 # --------------------------------------------------------------------------- the window
 
 
-@nb.njit(**JIT, inline="always")
-def _observation(o, R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
-                 focal, JA, Jrho, Jf, JX):  # fmt: skip
-    """Window observation ``o``: its landmark from the anchor keyframe's row camera (Jacobians
-    into ``JA``, ``Jrho``), seen by its keyframe at its own row time (``Jf``, ``JX``). Returns
-    the residual ``(ex, ey)`` and whether the point projects."""
-    k, j = obs_kf[o], obs_lm[o]
-    a = lm_anchor[j]
-    X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
-                  (v[a, 0], v[a, 1], v[a, 2]), (acc[a, 0], acc[a, 1], acc[a, 2]), lm_s[j],
-                  (lm_x[j, 0], lm_x[j, 1]), rho[j], JA, Jrho)  # fmt: skip
-    return _observe(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]), (w[k, 0], w[k, 1], w[k, 2]),
-                    (v[k, 0], v[k, 1], v[k, 2]), (acc[k, 0], acc[k, 1], acc[k, 2]), obs_s[o], X,
-                    (obs_x[o, 0], obs_x[o, 1]), focal, Jf, JX)  # fmt: skip
+@nb.njit(**JIT)
+def _landmark_points_into(R, p, w, v, acc, lm_anchor, lm_x, lm_s, rho, X):
+    """Every window landmark's world point into ``X`` (M, 3): once per landmark, for all of
+    its observations."""
+    for j in range(rho.shape[0]):
+        a = lm_anchor[j]
+        Xj = _anchor_point(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
+                           (v[a, 0], v[a, 1], v[a, 2]), (acc[a, 0], acc[a, 1], acc[a, 2]),
+                           lm_s[j], (lm_x[j, 0], lm_x[j, 1]), rho[j])[0]  # fmt: skip
+        X[j, 0], X[j, 1], X[j, 2] = Xj
+
+
+@nb.njit(**JIT)
+def _landmark_derivatives_into(R, p, w, v, acc, lm_anchor, lm_x, lm_s, rho, X, JA, Jrho):
+    """:func:`_landmark_points_into` with each point's derivatives by its anchor frame's
+    parameters ``JA`` (M, 3, 15) and by its inverse depth ``Jrho`` (M, 3)."""
+    for j in range(rho.shape[0]):
+        a = lm_anchor[j]
+        Xj = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
+                       (v[a, 0], v[a, 1], v[a, 2]), (acc[a, 0], acc[a, 1], acc[a, 2]), lm_s[j],
+                       (lm_x[j, 0], lm_x[j, 1]), rho[j], JA[j], Jrho[j])  # fmt: skip
+        X[j, 0], X[j, 1], X[j, 2] = Xj
 
 
 @nb.njit(**JIT)
 def _window_cost(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
                  focal, robust, mu, p2, acc_p2, res):  # fmt: skip
     """Robust cost of the window (and each observation's residual into ``res`` (n, 2))."""
-    JA = np.empty((3, FRAME_PARAMS))
-    Jrho = np.empty(3)
-    Jf = np.empty((2, FRAME_PARAMS))
-    JX = np.empty((2, 3))
+    X = np.empty((rho.shape[0], 3))
+    _landmark_points_into(R, p, w, v, acc, lm_anchor, lm_x, lm_s, rho, X)
     c = 0.0
     r2 = robust * robust
     for o in range(obs_kf.shape[0]):
-        ex, ey, ok = _observation(o, R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor,
-                                  lm_x, lm_s, rho, focal, JA, Jrho, Jf, JX)  # fmt: skip
+        k, j = obs_kf[o], obs_lm[o]
+        ex, ey, ok = _residual(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]),
+                               (w[k, 0], w[k, 1], w[k, 2]), (v[k, 0], v[k, 1], v[k, 2]),
+                               (acc[k, 0], acc[k, 1], acc[k, 2]), obs_s[o],
+                               (X[j, 0], X[j, 1], X[j, 2]), (obs_x[o, 0], obs_x[o, 1]),
+                               focal)  # fmt: skip
         if not ok:
             ex = ey = 10.0 * robust
         res[o, 0], res[o, 1] = ex, ey
@@ -304,6 +338,15 @@ def _window_cost(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x,
     return c
 
 
+@nb.njit(**JIT, inline="always")
+def _add_block(Hff, f1, f2, J1, J2, wt, n_par):
+    """``Hff[f1, f2] += wt J1^T J2`` over the first ``n_par`` parameters (J1, J2: (2, 15))."""
+    for i in range(n_par):
+        x0, x1 = J1[0, i], J1[1, i]
+        for i2 in range(n_par):
+            Hff[f1, f2, i, i2] += wt * (x0 * J2[0, i2] + x1 * J2[1, i2])
+
+
 @nb.njit(**JIT)
 def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
                    focal, robust, mu, p2, acc_p2, col, n_par, Hcc, gc, Hcp, hpp, gp):  # fmt: skip
@@ -311,13 +354,18 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
     block ``Hcc``/``gc`` (columns ``col[k, i]``, -1 for fixed parameters), the frame x
     landmark blocks ``Hcp`` (K, M, 15), the landmarks' ``hpp``/``gp`` (M,); over the first
     ``n_par`` frame parameters (12: every acceleration held)."""
-    K = R.shape[0]
-    JA = np.empty((3, FRAME_PARAMS))
-    Jrho = np.empty(3)
+    K, M = R.shape[0], rho.shape[0]
+    X = np.empty((M, 3))
+    JA = np.empty((M, 3, FRAME_PARAMS))
+    Jrho = np.empty((M, 3))
+    _landmark_derivatives_into(R, p, w, v, acc, lm_anchor, lm_x, lm_s, rho, X, JA, Jrho)
     Jf = np.empty((2, FRAME_PARAMS))
     JX = np.empty((2, 3))
     Ja = np.empty((2, FRAME_PARAMS))
     jr = np.empty(2)
+    # Hcc by frame pairs (f1 <= f2): each observation adds dense blocks, gathered into
+    # Hcc's free columns once at the end (the same sums in the same order, so the same bits)
+    Hff = np.zeros((K, K, n_par, n_par))
     Hcc[:] = 0.0
     gc[:] = 0.0
     Hcp[:] = 0.0
@@ -327,15 +375,19 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
     for o in range(obs_kf.shape[0]):
         k, j = obs_kf[o], obs_lm[o]
         a = lm_anchor[j]
-        ex, ey, ok = _observation(o, R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor,
-                                  lm_x, lm_s, rho, focal, JA, Jrho, Jf, JX)  # fmt: skip
+        ex, ey, ok = _observe(_rows(R[k]), (p[k, 0], p[k, 1], p[k, 2]),
+                              (w[k, 0], w[k, 1], w[k, 2]), (v[k, 0], v[k, 1], v[k, 2]),
+                              (acc[k, 0], acc[k, 1], acc[k, 2]), obs_s[o],
+                              (X[j, 0], X[j, 1], X[j, 2]), (obs_x[o, 0], obs_x[o, 1]), focal,
+                              Jf, JX)  # fmt: skip
         if not ok:
             continue
         wt = 1.0 / (1.0 + (ex * ex + ey * ey) / r2)
         for r in range(2):
             for i in range(n_par):
-                Ja[r, i] = JX[r, 0] * JA[0, i] + JX[r, 1] * JA[1, i] + JX[r, 2] * JA[2, i]
-            jr[r] = JX[r, 0] * Jrho[0] + JX[r, 1] * Jrho[1] + JX[r, 2] * Jrho[2]
+                Ja[r, i] = (JX[r, 0] * JA[j, 0, i] + JX[r, 1] * JA[j, 1, i]
+                            + JX[r, 2] * JA[j, 2, i])  # fmt: skip
+            jr[r] = JX[r, 0] * Jrho[j, 0] + JX[r, 1] * Jrho[j, 1] + JX[r, 2] * Jrho[j, 2]
         e = (ex, ey)
         hpp[j] += wt * (jr[0] * jr[0] + jr[1] * jr[1])
         gp[j] += wt * (jr[0] * ex + jr[1] * ey)
@@ -345,17 +397,32 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
             for i in range(n_par):
                 Hcp[f, j, i] += wt * (J1[0, i] * jr[0] + J1[1, i] * jr[1])
                 ci = col[f, i]
+                if ci >= 0:
+                    gc[ci] += wt * (J1[0, i] * e[0] + J1[1, i] * e[1])
+        # the frames' products into their blocks, the earlier frame's rows first (in
+        # Hcc's upper triangle: columns are frame-major)
+        if a == k:  # the anchor's own observation: in the order of the two sides' products
+            _add_block(Hff, k, k, Jf, Jf, wt, n_par)
+            _add_block(Hff, k, k, Jf, Ja, wt, n_par)
+            _add_block(Hff, k, k, Ja, Jf, wt, n_par)
+            _add_block(Hff, k, k, Ja, Ja, wt, n_par)
+        else:
+            _add_block(Hff, k, k, Jf, Jf, wt, n_par)
+            _add_block(Hff, a, a, Ja, Ja, wt, n_par)
+            if k < a:
+                _add_block(Hff, k, a, Jf, Ja, wt, n_par)
+            else:
+                _add_block(Hff, a, k, Ja, Jf, wt, n_par)
+    for f1 in range(K):  # the blocks' free parameters into Hcc's upper triangle
+        for f2 in range(f1, K):
+            for i in range(n_par):
+                ci = col[f1, i]
                 if ci < 0:
                     continue
-                gc[ci] += wt * (J1[0, i] * e[0] + J1[1, i] * e[1])
-                for side2 in range(2):
-                    f2 = k if side2 == 0 else a
-                    J2 = Jf if side2 == 0 else Ja
-                    for i2 in range(n_par):
-                        c2 = col[f2, i2]
-                        if c2 < ci:  # (also the fixed ones, -1): the upper triangle only
-                            continue
-                        Hcc[ci, c2] += wt * (J1[0, i] * J2[0, i2] + J1[1, i] * J2[1, i2])
+                for i2 in range(n_par):
+                    c2 = col[f2, i2]
+                    if c2 >= ci:  # (not the fixed ones, -1, nor a diagonal block's lower part)
+                        Hcc[ci, c2] = Hff[f1, f2, i, i2]
     n_cols = Hcc.shape[0]
     for c1 in range(n_cols):  # the lower triangle, mirrored
         for c2 in range(c1 + 1, n_cols):
@@ -424,6 +491,28 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
                     if col[k1, i1] >= 0:
                         free_col[m], free_k[m], free_i[m] = col[k1, i1], k1, i1
                         m += 1
+    # per landmark, the frames with free parameters that see it (in order), for the Schur
+    # sums by frame pairs (dense blocks, gathered into W's free columns once per iteration:
+    # the same sums in the same order as over the free columns themselves)
+    has_free = np.zeros(K, np.bool_)
+    for k1 in range(K):
+        for i1 in range(n_par):
+            if col[k1, i1] >= 0:
+                has_free[k1] = True
+    fstart = np.zeros(M + 1, np.int64)
+    for j in range(M):
+        fstart[j + 1] = fstart[j]
+        for k1 in range(K):
+            if seen[j, k1] and has_free[k1]:
+                fstart[j + 1] += 1
+    frames = np.empty(fstart[M], np.int64)
+    for j in range(M):
+        m = fstart[j]
+        for k1 in range(K):
+            if seen[j, k1] and has_free[k1]:
+                frames[m] = k1
+                m += 1
+    Wff = np.empty((K, K, n_par, n_par))
     h = np.empty(start[M])
     W = np.empty((n_cols, n_cols))  # sum_j Hcp_j Hcp_j^T / hpp_j (undamped)
     u = np.empty(n_cols)  # sum_j Hcp_j gp_j / hpp_j
@@ -434,22 +523,31 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
                        rho, focal, robust, mu, p2, acc_p2, col, n_par, Hcc, gc, Hcp, hpp, gp)
         # the landmarks' part of the Schur complement, once per iteration: damping a
         # landmark's block by (1 + lambda) scales its terms by 1 / (1 + lambda)
-        W[:] = 0.0
+        Wff[:] = 0.0
         u[:] = 0.0
         for j in range(M):
             inv0 = 1.0 / (hpp[j] + 1e-12)
             for m in range(start[j], start[j + 1]):
                 h[m] = Hcp[free_k[m], j, free_i[m]]
-            for m in range(start[j], start[j + 1]):
-                c1 = free_col[m]
-                h1 = h[m] * inv0
-                u[c1] += h1 * gp[j]
-                for m2 in range(m, start[j + 1]):
-                    W[c1, free_col[m2]] += h1 * h[m2]
-        for c1 in range(n_cols):  # each pair was added once, to either triangle: fold them
-            for c2 in range(c1 + 1, n_cols):
-                W[c1, c2] += W[c2, c1]
-                W[c2, c1] = W[c1, c2]
+                u[free_col[m]] += h[m] * inv0 * gp[j]
+            for m in range(fstart[j], fstart[j + 1]):
+                f1 = frames[m]
+                for m2 in range(m, fstart[j + 1]):
+                    f2 = frames[m2]
+                    for i1 in range(n_par):
+                        h1 = Hcp[f1, j, i1] * inv0
+                        for i2 in range(n_par):
+                            Wff[f1, f2, i1, i2] += h1 * Hcp[f2, j, i2]
+        for f1 in range(K):  # the free parameters' blocks into W, both triangles
+            for f2 in range(f1, K):
+                for i1 in range(n_par):
+                    c1 = col[f1, i1]
+                    if c1 < 0:
+                        continue
+                    for i2 in range(n_par):
+                        c2 = col[f2, i2]
+                        if c2 >= c1:  # (not the fixed ones, -1, nor a diagonal block's lower)
+                            W[c1, c2] = W[c2, c1] = Wff[f1, f2, i1, i2]
         accepted = False
         while lam < LAMBDA_MAX:
             scale = 1.0 / (1.0 + lam)
@@ -498,16 +596,8 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
 @nb.njit(**JIT)
 def landmark_points(R, p, w, v, acc, lm_anchor, lm_x, lm_s, rho):
     """World points (M, 3) of the window's landmarks."""
-    M = rho.shape[0]
-    out = np.empty((M, 3))
-    JA = np.empty((3, FRAME_PARAMS))
-    Jrho = np.empty(3)
-    for j in range(M):
-        a = lm_anchor[j]
-        X = _landmark(_rows(R[a]), (p[a, 0], p[a, 1], p[a, 2]), (w[a, 0], w[a, 1], w[a, 2]),
-                      (v[a, 0], v[a, 1], v[a, 2]), (acc[a, 0], acc[a, 1], acc[a, 2]), lm_s[j],
-                      (lm_x[j, 0], lm_x[j, 1]), rho[j], JA, Jrho)  # fmt: skip
-        out[j, 0], out[j, 1], out[j, 2] = X
+    out = np.empty((rho.shape[0], 3))
+    _landmark_points_into(R, p, w, v, acc, lm_anchor, lm_x, lm_s, rho, out)
     return out
 
 

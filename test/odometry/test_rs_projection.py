@@ -198,3 +198,143 @@ def test_window_ba_recovers_states_and_depths_from_a_perturbed_start(seed):
     assert np.abs(res2).max() < 1e-4
     assert np.allclose(p2_, p, atol=1e-4) and np.allclose(rho2, rho_true, rtol=1e-3)
     assert np.allclose(w2[1:], w[1:], atol=0.05)
+
+
+def _mixed_window(rng, held_acc: bool):
+    """A window whose landmarks are anchored in every frame, seen by frames before and after
+    their anchor and by the anchor itself, with the first two frames' poses held (and the
+    accelerations held or free): every path of the window system's accumulation."""
+    tau, K, M = 30e-6, 4, 40
+    states = [(so3_exp([0.01 * k, 0.03 * k, 0.01 * k]),
+               np.array([0.25 * k, 0.02 * k, 0.05 * k]), rng.normal(0, 0.5, 3),
+               rng.normal(0, 1.0, 3) + [1.0, 0, 0], rng.normal(0, 20.0, 3)) for k in range(K)]
+    X = _scene(rng, M)
+    obs = [_project(st, X, tau, 0.0, FOCAL) for st in states]
+    lm_anchor = np.arange(M) % K
+    lm_x = np.array([obs[lm_anchor[j]][0][j] for j in range(M)])
+    lm_s = np.array([obs[lm_anchor[j]][1][j] for j in range(M)])
+    obs_kf, obs_lm = [], []
+    for j in range(M):
+        for k in range(K):
+            if k != lm_anchor[j] or j % 3 == 0:  # a third also seen by their own anchor
+                obs_kf.append(k)
+                obs_lm.append(j)
+    obs_kf, obs_lm = np.array(obs_kf, np.int64), np.array(obs_lm, np.int64)
+    # measurements off the exact projections, so the IRLS weights differ
+    obs_x = np.array([obs[k][0][j] for k, j in zip(obs_kf, obs_lm, strict=True)]) + rng.normal(
+        0, 2.0 / FOCAL, (len(obs_kf), 2))
+    obs_s = np.array([obs[k][1][j] for k, j in zip(obs_kf, obs_lm, strict=True)])
+    R, p, w, v, acc = (np.stack([st[i] for st in states]) for i in range(5))
+    n_par = 12 if held_acc else NP
+    col = -np.ones((K, NP), np.int64)
+    n = 0
+    for k in range(K):
+        for i in range(n_par):
+            if k >= 2 or 6 <= i < 12:
+                col[k, i] = n
+                n += 1
+    rho = np.array([1.0 / np.linalg.norm(X[j] - states[lm_anchor[j]][1]) for j in range(M)])
+    rho *= rng.uniform(0.9, 1.1, M)
+    mu, p2 = rng.normal(0, 0.1, (K, 6)), np.full((K, 6), 3.0)
+    return (R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, FOCAL,
+            1.5, mu, p2, 0.0 if held_acc else 1e-4), col, n, n_par  # fmt: skip
+
+
+def _dense_system(args, col, n, n_par):
+    """The window's IRLS normal equations by stacking each observation's full Jacobian (all
+    frames' parameters, then every inverse depth): (H, g) over free columns and landmarks,
+    and the residuals (n_obs, 2)."""
+    (R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal, robust,
+     mu, p2, acc_p2) = args  # fmt: skip
+    K, M = R.shape[0], len(rho)
+    free = col >= 0
+    free[:, n_par:] = False
+    H = np.zeros((K * NP + M, K * NP + M))
+    g = np.zeros(K * NP + M)
+    residuals = np.zeros((len(obs_kf), 2))
+    for o in range(len(obs_kf)):
+        k, j = obs_kf[o], obs_lm[o]
+        a = lm_anchor[j]
+        JA, Jrho = np.empty((3, NP)), np.empty(3)
+        Xw = rp._landmark(rp._rows(R[a]), tuple(p[a]), tuple(w[a]), tuple(v[a]), tuple(acc[a]),
+                          lm_s[j], tuple(lm_x[j]), rho[j], JA, Jrho)  # fmt: skip
+        Jf, JX = np.empty((2, NP)), np.empty((2, 3))
+        ex, ey, ok = rp._observe(rp._rows(R[k]), tuple(p[k]), tuple(w[k]), tuple(v[k]),
+                                 tuple(acc[k]), obs_s[o], Xw, tuple(obs_x[o]), focal, Jf, JX)
+        assert ok
+        J = np.zeros((2, K * NP + M))
+        J[:, k * NP:(k + 1) * NP] += Jf
+        J[:, a * NP:(a + 1) * NP] += JX @ JA
+        J[:, K * NP + j] = JX @ Jrho
+        e = residuals[o] = np.array([ex, ey])
+        wt = 1.0 / (1.0 + e @ e / robust**2)
+        H += wt * J.T @ J
+        g += wt * J.T @ e
+    for k in range(K):
+        for i in range(6):
+            c = k * NP + 6 + i
+            H[c, c] += p2[k, i]
+            g[c] += p2[k, i] * ((w[k, i] if i < 3 else v[k, i - 3]) - mu[k, i])
+        for i in range(3):
+            H[k * NP + 12 + i, k * NP + 12 + i] += acc_p2
+            g[k * NP + 12 + i] += acc_p2 * acc[k, i]
+    order = np.argsort(col[free])  # the free parameters in their columns' order
+    idx = np.concatenate([np.flatnonzero(free.ravel())[order], K * NP + np.arange(M)])
+    return H[np.ix_(idx, idx)], g[idx], residuals
+
+
+@pytest.mark.parametrize("held_acc", [True, False])
+def test_window_normal_equations_equal_the_stacked_jacobians(held_acc):
+    rng = np.random.default_rng(3)
+    args, col, n, n_par = _mixed_window(rng, held_acc)
+    K, M = args[0].shape[0], len(args[12])
+    Hcc, gc = np.zeros((n, n)), np.zeros(n)
+    Hcp, hpp, gp = np.zeros((K, M, NP)), np.zeros(M), np.zeros(M)
+    rp._window_system(*args, col, n_par, Hcc, gc, Hcp, hpp, gp)
+    H, g, residuals = _dense_system(args, col, n, n_par)
+    scale = np.abs(H).max()
+    assert np.allclose(Hcc, H[:n, :n], rtol=0, atol=1e-12 * scale)
+    assert np.allclose(gc, g[:n], rtol=0, atol=1e-12 * np.abs(g).max())
+    assert np.allclose(hpp, np.diag(H)[n:], rtol=1e-12)
+    assert np.allclose(gp, g[n:], rtol=1e-12, atol=1e-15)
+    # each landmark's block couples it with the frames that see it or anchor it only
+    for j in range(M):
+        Hcp_free = np.zeros(n)
+        for k in range(K):
+            for i in range(n_par):
+                if col[k, i] >= 0:
+                    Hcp_free[col[k, i]] = Hcp[k, j, i]
+        assert np.allclose(Hcp_free, H[:n, n + j], rtol=0, atol=1e-12 * scale), j
+    # the cost's residuals (without derivatives) are the system's
+    res = np.zeros((len(args[5]), 2))
+    rp._window_cost(*args, res)
+    assert np.array_equal(res, residuals)
+
+
+@pytest.mark.parametrize("held_acc", [True, False])
+def test_window_lm_step_is_the_dense_schur_complements(held_acc):
+    """One step of the window LM (landmarks eliminated by their Schur complement, summed by
+    frame pairs) equals the step of the dense damped system."""
+    rng = np.random.default_rng(4)
+    args, col, n, n_par = _mixed_window(rng, held_acc)
+    (R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho, focal, robust,
+     mu, p2, acc_p2) = args  # fmt: skip
+    H, g, _ = _dense_system(args, col, n, n_par)
+    lam = 1e-4  # the first step's damping
+    A = H + lam * np.diag(np.concatenate([np.maximum(np.diag(H)[:n], 1e-9),
+                                          np.diag(H)[n:] + 1e-12 / lam]))  # fmt: skip
+    step = np.linalg.solve(A, -g)
+    out = rp.window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
+                       focal, robust, mu, p2, acc_p2, col, n, 1)  # fmt: skip
+    R1, p1, w1, v1, acc1, rho1, _, cost, it = out
+    assert it == 1
+    res = np.zeros((len(obs_kf), 2))
+    assert cost < rp._window_cost(*args, res)  # the step was taken
+    for k in range(2, R.shape[0]):  # free positions and velocities moved by the dense step
+        assert np.allclose(p1[k] - p[k], step[col[k, 3:6]], rtol=1e-6, atol=1e-12)
+    for k in range(R.shape[0]):
+        assert np.allclose(w1[k] - w[k], step[col[k, 6:9]], rtol=1e-6, atol=1e-12)
+    if not held_acc:
+        assert np.allclose(acc1[2] - acc[2], step[col[2, 12:15]], rtol=1e-6, atol=1e-10)
+    inside = (rho1 > rp.RHO_MIN) & (rho1 < rp.RHO_MAX)
+    assert np.allclose((rho1 - rho)[inside], step[n:][inside], rtol=1e-6, atol=1e-12)
