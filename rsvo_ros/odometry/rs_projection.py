@@ -348,6 +348,23 @@ def _add_block(Hff, f1, f2, J1, J2, wt, n_par):
 
 
 @nb.njit(**JIT)
+def _gather_blocks(blocks, col, n_par, out):
+    """A symmetric matrix over the free columns from its frame-pair blocks ``blocks[f1, f2]``
+    (f1 <= f2, the upper triangle: columns are frame-major), both triangles into ``out``."""
+    K = blocks.shape[0]
+    for f1 in range(K):
+        for f2 in range(f1, K):
+            for i1 in range(n_par):
+                c1 = col[f1, i1]
+                if c1 < 0:
+                    continue
+                for i2 in range(n_par):
+                    c2 = col[f2, i2]
+                    if c2 >= c1:  # (not the fixed ones, -1, nor a diagonal block's lower part)
+                        out[c1, c2] = out[c2, c1] = blocks[f1, f2, i1, i2]
+
+
+@nb.njit(**JIT)
 def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm_s, rho,
                    focal, robust, mu, p2, acc_p2, col, n_par, Hcc, gc, Hcp, hpp, gp):  # fmt: skip
     """Normal equations of the window with IRLS weights of the Cauchy loss: the frames'
@@ -413,20 +430,7 @@ def _window_system(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_
                 _add_block(Hff, k, a, Jf, Ja, wt, n_par)
             else:
                 _add_block(Hff, a, k, Ja, Jf, wt, n_par)
-    for f1 in range(K):  # the blocks' free parameters into Hcc's upper triangle
-        for f2 in range(f1, K):
-            for i in range(n_par):
-                ci = col[f1, i]
-                if ci < 0:
-                    continue
-                for i2 in range(n_par):
-                    c2 = col[f2, i2]
-                    if c2 >= ci:  # (not the fixed ones, -1, nor a diagonal block's lower part)
-                        Hcc[ci, c2] = Hff[f1, f2, i, i2]
-    n_cols = Hcc.shape[0]
-    for c1 in range(n_cols):  # the lower triangle, mirrored
-        for c2 in range(c1 + 1, n_cols):
-            Hcc[c2, c1] = Hcc[c1, c2]
+    _gather_blocks(Hff, col, n_par, Hcc)
     for kk in range(K):  # velocity priors
         for i in range(6):
             ci = col[kk, 6 + i]
@@ -538,16 +542,7 @@ def window_lm(R, p, w, v, acc, obs_kf, obs_lm, obs_x, obs_s, lm_anchor, lm_x, lm
                         h1 = Hcp[f1, j, i1] * inv0
                         for i2 in range(n_par):
                             Wff[f1, f2, i1, i2] += h1 * Hcp[f2, j, i2]
-        for f1 in range(K):  # the free parameters' blocks into W, both triangles
-            for f2 in range(f1, K):
-                for i1 in range(n_par):
-                    c1 = col[f1, i1]
-                    if c1 < 0:
-                        continue
-                    for i2 in range(n_par):
-                        c2 = col[f2, i2]
-                        if c2 >= c1:  # (not the fixed ones, -1, nor a diagonal block's lower)
-                            W[c1, c2] = W[c2, c1] = Wff[f1, f2, i1, i2]
+        _gather_blocks(Wff, col, n_par, W)
         accepted = False
         while lam < LAMBDA_MAX:
             scale = 1.0 / (1.0 + lam)
