@@ -830,7 +830,11 @@ class WindowOdometry:
         state, _, vel_cur = self._states_from_pair(res, kf.state, stamp_ns, scale)
         new_kf = self._new_keyframe(state, obs, vel_cur)
         before = state.copy()
-        report = self.map_keyframe(new_kf)
+        # the scale is a guess: the BA may refine the points the memory has (the tracked
+        # map's), but the landmarks triangulated from the guessed baseline stay out of the
+        # memory that re-finding trusts (a walk re-found on such points went on at 0.4 of its
+        # scale: README, "A pair recovery's landmarks kept out of the memory")
+        report = self.map_keyframe(new_kf, remember_new=False)
         state = new_kf.state.copy() if new_kf in self.map.keyframes else state
         self._before, self._last = self._last, state.copy()
         self._lost = 0
@@ -899,15 +903,16 @@ class WindowOdometry:
 
     # ------------------------------------------------------------------ mapping
 
-    def map_keyframe(self, kf: KeyFrame | None, optimize_only: bool = False) -> BAReport:
+    def map_keyframe(self, kf: KeyFrame | None, optimize_only: bool = False,
+                     remember_new: bool = True) -> BAReport:
         """Insert ``kf`` (None: only optimise), slide the window, run the BA and give tracking
         the new points."""
-        report, points = self._map(kf, optimize_only)
+        report, points = self._map(kf, optimize_only, remember_new)
         self._points = points
         return report
 
-    def _map(self, kf: KeyFrame | None,
-             optimize_only: bool = False) -> tuple[BAReport, tuple[np.ndarray, np.ndarray]]:
+    def _map(self, kf: KeyFrame | None, optimize_only: bool = False,
+             remember_new: bool = True) -> tuple[BAReport, tuple[np.ndarray, np.ndarray]]:
         """:meth:`map_keyframe` without handing the points to tracking: the mapping thread's
         points go to tracking with the keyframe's correction, at the frame that picks both up
         (points from the refined map with a prediction from the map as it was had put
@@ -923,7 +928,7 @@ class WindowOdometry:
             points = self.map.points()
             newest = self.map.keyframes[-1].state.stamp_ns if self.map.keyframes else None
             if newest is not None and not self._provisional(newest):
-                self._remember(points)
+                self._remember(points, remember_new)
             log = dict(self.keyframe_log)
             log.update({k.state.stamp_ns: k.state.copy() for k in self.map.keyframes})
             cap = self.options.keyframe_log_max
@@ -955,10 +960,14 @@ class WindowOdometry:
         until = self._provisional_until
         return until is not None and stamp_ns < until
 
-    def _remember(self, points: tuple[np.ndarray, np.ndarray]) -> None:
+    def _remember(self, points: tuple[np.ndarray, np.ndarray], new: bool = True) -> None:
         """Write the map's landmarks (world points) into the memory, each with the descriptor
-        of the newest keyframe of the window that has one for it."""
+        of the newest keyframe of the window that has one for it (``new`` False: only those
+        the memory has)."""
         ids, X = points
+        if not new and len(ids):
+            keep = np.isin(ids, self.memory.snapshot()[0])
+            ids, X = ids[keep], X[keep]
         if self.options.reloc_min_inliers <= 0 or not len(ids):
             return
         kf_ids, kf_desc = [], []
