@@ -906,7 +906,8 @@ class WindowOdometry:
     def map_keyframe(self, kf: KeyFrame | None, optimize_only: bool = False,
                      remember_new: bool = True) -> BAReport:
         """Insert ``kf`` (None: only optimise), slide the window, run the BA and give tracking
-        the new points."""
+        the new points. ``remember_new`` False: the points go into the memory only where it has
+        them already (a pair recovery's BA: its new landmarks rest on a guessed scale)."""
         report, points = self._map(kf, optimize_only, remember_new)
         self._points = points
         return report
