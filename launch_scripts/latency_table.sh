@@ -71,10 +71,14 @@ mkdir -p "$OUT"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-87}"
 results=()
 for res in $RESOLUTIONS; do
-    # a 36 ms readout at either height; reliable images (the probe renders before it
-    # advertises, so the node's auto QoS would time out and fall back to best effort)
-    ld=$(python -c "print(0.036 / int('$res'.split('x')[1]))")
     for rate in 10 15 30; do
+        # the node runs with the line delay the probe renders with: a 36 ms readout, at
+        # most one frame interval (33 ms at 30 Hz with the motion at the rate; until the
+        # forty-seventh session the 30 Hz rows told the node 36 ms). Reliable images (the
+        # probe renders before it advertises, so the node's auto QoS would time out and fall
+        # back to best effort)
+        ld=$(python -m rsvo_ros.ros.latency --rate "$rate" --resolution "$res" --motion walk \
+             "${motion[@]}" --print-line-delay)
         for profile in $PROFILES; do
             if [ "$profile" = large_images ]; then
                 export FASTRTPS_DEFAULT_PROFILES_FILE="$LARGE_IMAGES"

@@ -17,6 +17,12 @@ against the frames' ground truth (``ate_m``; ``--seed`` picks the rendered seque
 truth and the rendering's line delay) as a rosbag2, after the run (one rate): where the node
 dropped no frame, ``rsvo_replay DIR --mapping-lag 0.05`` (the node's lag) gives its poses.
 
+The node must run with the line delay the frames are rendered with, which depends on the rate
+with ``--motion-at-rate`` (the readout is at most one frame interval: 33 ms at 30 Hz, 36 ms at
+15 Hz): ``--print-line-delay`` prints it for one ``--rate`` (as the ``--bag`` records it) and
+exits, and each row records it beside the node's own (``line_delay_rendered_s``,
+``line_delay_node``; a warning where they differ).
+
 ``--summary RESULT.json ...`` prints the results of earlier runs as the README's table, each
 row against issue 14's targets (``launch_scripts/latency_table.sh`` runs and summarises).
 """
@@ -54,6 +60,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bag", default=None, metavar="DIR",
                    help="also write the frames as sent (their stamps) as a rosbag2 here, "
                         "after the run: the replay of what the node got (one --rate)")
+    p.add_argument("--print-line-delay", action="store_true",
+                   help="print the line delay (s per row) of the frames this probe renders for "
+                        "its one --rate, --resolution, --motion and --motion-at-rate (what the "
+                        "node must be given: python -m rsvo_ros.ros.latency --rate 30 "
+                        "--motion-at-rate --print-line-delay) and exit")
     p.add_argument("--node-pid", type=int, default=None,
                    help="the node's process id (default: the process running rsvo_node)")
     p.add_argument("--wait", type=float, default=120.0, metavar="S",
@@ -78,6 +89,12 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--bag takes one --rate and a path that does not exist, got {args.bag} "
                 f"with {len(args.rate)} rates")
     w, h = args.resolution
+    if args.print_line_delay:
+        if len(args.rate) != 1:
+            p.error(f"--print-line-delay takes one --rate, got {len(args.rate)}")
+        rate = args.rate[0] if args.motion_at_rate else None
+        print(line_delay_text(render_config(2, args.motion, w, h, rate, args.seed).tau))
+        return 0
 
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -85,14 +102,13 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import CameraInfo, Image
 
-    from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
+    from rsvo_ros.sim.synth import SequenceRenderer
 
     def render(rate: float | None):
         """The frames' bytes and ground-truth poses ``(R_world_cam, p_world_cam)``, the motion
         sampled at ``rate`` (None: its own rate), the camera matrix, the rate the motion was
         sampled at and the line delay; rendered before publishing, which must keep time."""
-        cfg = SynthConfig(frames=args.frames, motion=args.motion, width=w, height=h,
-                          frame_rate=rate, seed=args.seed)
+        cfg = render_config(args.frames, args.motion, w, h, rate, args.seed)
         renderer = SequenceRenderer(cfg)
         frames = list(renderer)
         poses = [(f.R_world_cam.copy(), f.p_world_cam.copy()) for f in frames]
@@ -202,7 +218,16 @@ def main(argv: list[str] | None = None) -> int:
                # the node's own counts over this run (diagnostics): why frames are missing
                "node_frames": {k: n - counts0.get(k, 0) for k, n in _frame_counts(diag).items()},
                # the motion per frame: sampled at this rate, or the motion's own frames
-               "motion_rate_hz": motion_rate, "seed": args.seed}
+               "motion_rate_hz": motion_rate, "seed": args.seed,
+               # the line delay the frames were rendered with (as --bag records it) and the
+               # node's (its diagnostics): a node told another one runs a miscalibrated camera
+               "line_delay_rendered_s": float(line_delay_text(tau)),
+               "line_delay_node": diag.get("line_delay")}
+        if not line_delay_matches(row["line_delay_node"], tau):
+            print(f"warning: the node runs with line_delay {row['line_delay_node']}, the "
+                  f"frames were rendered with {line_delay_text(tau)} (python -m "
+                  f"rsvo_ros.ros.latency --rate {rate:g} ... --print-line-delay): its "
+                  f"accuracy is not a calibrated camera's", file=sys.stderr)
         row.update(live_ate({s: poses[k][1] for k, s in enumerate(sent)}, positions))
         results.append(row)
         print(json.dumps(row))
@@ -215,6 +240,34 @@ def main(argv: list[str] | None = None) -> int:
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
+
+
+def render_config(frames: int, motion: str, width: int, height: int, rate: float | None,
+                  seed: int):
+    """The probe's rendered sequence: ``motion`` sampled at ``rate`` (None: at its own rate);
+    its ``tau`` is the line delay the frames have (the readout capped at one frame interval)."""
+    from rsvo_ros.sim.synth import SynthConfig
+
+    return SynthConfig(frames=frames, motion=motion, width=width, height=height,
+                       frame_rate=rate, seed=seed)
+
+
+def line_delay_text(line_delay: float) -> str:
+    """A line delay as the probe prints it and its ``--bag`` records it (12 significant
+    digits): a node given this text and the bag's replay run with the same number."""
+    return format(float(line_delay), ".12g")
+
+
+def line_delay_matches(node_text: str | None, rendered: float) -> bool:
+    """Whether the node's line delay (its diagnostics' text; None: not reported yet, taken
+    as matching) is the rendered one to a part in 1e9."""
+    if node_text is None:
+        return True
+    try:
+        node = float(node_text)
+    except ValueError:
+        return False
+    return abs(node - rendered) <= 1e-9 * max(abs(rendered), 1e-300)
 
 
 def write_sent_bag(path, stamps_ns: list[int], images: list[bytes], K: np.ndarray,
@@ -231,7 +284,7 @@ def write_sent_bag(path, stamps_ns: list[int], images: list[bytes], K: np.ndarra
                          f"poses: one of each per frame")
     ts = bagio.typestore()
     with bagio.open_writer(path, "sqlite3") as writer:
-        writer.set_custom_data(bagio.LINE_DELAY_KEY, format(float(line_delay), ".12g"))
+        writer.set_custom_data(bagio.LINE_DELAY_KEY, line_delay_text(line_delay))
         connections = bagio.frame_connections(writer, ts)
         for stamp, data, (R, p) in zip(stamps_ns, images, poses, strict=True):
             image = np.frombuffer(data, np.uint8).reshape(height, width)

@@ -138,6 +138,50 @@ def test_rows_of_each_walk_seed_sit_side_by_side_and_say_their_seed():
     assert "| 30 Hz (seed 7) | 0.100 m |" in lines[2]
 
 
+@pytest.mark.parametrize("rate, at_rate, readout_s", [
+    (30.0, True, 1.0 / 30.0),  # the readout capped at the frame interval
+    (15.0, True, 0.036),
+    (30.0, False, 0.036),  # the walk's own frames (30 Hz) without a frame rate: 36 ms
+])
+def test_the_probe_prints_the_line_delay_it_renders_with(rate, at_rate, readout_s, capsys):
+    """The node must be told the line delay of the frames it gets: with the motion sampled at
+    30 Hz they are read out in one frame interval (33 ms), not the 36 ms the latency table
+    gave every row's node until the forty-seventh session. ``--print-line-delay`` prints the
+    renderer's, as the probe's ``--bag`` records it, without starting ROS."""
+    from rsvo_ros.ros.latency import line_delay_text, main
+    from rsvo_ros.sim.synth import SynthConfig
+
+    argv = ["--rate", str(rate), "--resolution", "640x480", "--motion", "walk",
+            "--print-line-delay"] + (["--motion-at-rate"] if at_rate else [])
+    assert main(argv) == 0
+    text = capsys.readouterr().out.strip()
+    assert float(text) == pytest.approx(readout_s / 480, rel=1e-10)
+    cfg = SynthConfig(frames=2, motion="walk", width=640, height=480,
+                      frame_rate=rate if at_rate else None)
+    assert text == line_delay_text(cfg.tau)
+
+
+def test_the_line_delay_print_takes_one_rate(capsys):
+    from rsvo_ros.ros.latency import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--rate", "15", "30", "--print-line-delay"])
+    assert exc.value.code == 2
+    assert "--print-line-delay takes one --rate, got 2" in capsys.readouterr().err
+
+
+def test_the_nodes_line_delay_is_checked_against_the_rendered_one():
+    from rsvo_ros.ros.latency import line_delay_matches, line_delay_text
+
+    tau = 1.0 / 30.0 / 480
+    assert line_delay_matches(line_delay_text(tau), tau)  # the printed text: the same
+    assert line_delay_matches(repr(tau), tau)
+    assert not line_delay_matches("7.5e-05", tau)  # the 36 ms readout at 30 Hz
+    assert not line_delay_matches("0.0", tau) and line_delay_matches("0.0", 0.0)
+    assert not line_delay_matches("auto", tau)
+    assert line_delay_matches(None, tau)  # no diagnostics yet: nothing to say
+
+
 def test_the_probe_rejects_a_negative_seed_before_it_starts(capsys):
     from rsvo_ros.ros.latency import main
 
