@@ -11,23 +11,47 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from rsvo_ros.ros import bagio
 from rsvo_ros.sim.synth import LENSES, MOTIONS, SequenceRenderer, SynthConfig, resolution_arg
 
 EXIT_USAGE = 2
+STAMP_JITTER_STREAM = 7717  # the stamp jitter's random stream, beside the sequence's seed
+
+
+def jittered_stamps_ns(config: SynthConfig, stamp_jitter_s: float) -> list[int]:
+    """Each frame's stamp (ns) as a camera driver that stamps on arrival gives it: the nominal
+    ``k / rate`` plus a uniform delay in ``[0, stamp_jitter_s)``, from a stream seeded by the
+    sequence's seed (the same bag twice for the same arguments). ``ValueError`` unless
+    ``0 <= stamp_jitter_s`` < one frame interval (the frames keep their order)."""
+    interval = 1.0 / config.rate_hz
+    if not 0.0 <= stamp_jitter_s < interval:
+        raise ValueError(f"the stamp jitter must be at least 0 s and under one frame interval "
+                         f"({interval:g} s), got {stamp_jitter_s!r}")
+    nominal = [round(k / config.rate_hz * 1e9) for k in range(config.frames)]
+    if stamp_jitter_s == 0:
+        return nominal
+    rng = np.random.default_rng([config.seed, STAMP_JITTER_STREAM])
+    delays = rng.uniform(0.0, stamp_jitter_s, config.frames)
+    return [t + round(d * 1e9) for t, d in zip(nominal, delays, strict=True)]
 
 
 def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
               overwrite: bool = False, progress: bool = True,
-              compressed: str | None = None) -> dict:  # fmt: skip
+              compressed: str | None = None, stamp_jitter_s: float = 0.0) -> dict:  # fmt: skip
     """Render ``config`` frame by frame into a bag at ``path``; returns a small summary.
     ``compressed`` (``"png"`` or ``"jpeg"``): the images as sensor_msgs/CompressedImage on
     ``/camera/image_raw/compressed`` instead of sensor_msgs/Image on ``/camera/image_raw``.
+    ``stamp_jitter_s`` > 0: every message of a frame stamped late by up to that
+    (:func:`jittered_stamps_ns`; images and ground truth are the nominal instant's, as a
+    driver's arrival stamps have them), recorded as ``rsvo.stamp_jitter``.
 
     Raises FileExistsError if ``path`` exists and ``overwrite`` is False.
     """
     if compressed is not None and compressed not in bagio.COMPRESSIONS:
         raise ValueError(f"compressed must be one of {bagio.COMPRESSIONS}, got {compressed!r}")
+    stamps_ns = jittered_stamps_ns(config, stamp_jitter_s)
     path = Path(path)
     if path.exists():
         if not overwrite:
@@ -59,10 +83,11 @@ def write_bag(path: Path, config: SynthConfig, storage: str = "sqlite3",
         writer.set_custom_data("rsvo.movers", str(config.movers))
         if compressed is not None:
             writer.set_custom_data("rsvo.compressed", compressed)
+        if stamp_jitter_s > 0:
+            writer.set_custom_data("rsvo.stamp_jitter", format(float(stamp_jitter_s), ".12g"))
         connections = bagio.frame_connections(
             writer, ts, bagio.IMAGE_TYPE if compressed is None else bagio.COMPRESSED_IMAGE_TYPE)
-        for frame in renderer:
-            stamp_ns = round(frame.stamp * 1e9)
+        for frame, stamp_ns in zip(renderer, stamps_ns, strict=True):
             img = bagio.image_msg(stamp_ns, frame.image) if compressed is None else \
                 bagio.compressed_image_msg(stamp_ns, frame.image, compressed)
             bagio.write_frame(writer, connections, stamp_ns, img, K, config.width, config.height,
@@ -128,6 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "panels) crossing or walking along in front of the camera, spread over "
                         "the sequence, never within 1 m (vehicles 2 m) of the camera's path: "
                         "points that move on their own (default 0)")
+    p.add_argument("--stamp-jitter", type=float, default=0.0, metavar="S",
+                   help="stamp every frame late by a uniform 0-S seconds, as a driver that "
+                        "stamps on arrival does (the images and ground truth stay the nominal "
+                        "instant's; under one frame interval; default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -143,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
                              gain_variation=args.gain_variation,
                              frame_rate=args.rate, movers=args.movers)  # fmt: skip
         summary = write_bag(args.out_bag, config, args.storage, args.overwrite,
-                            progress=not args.no_progress, compressed=args.compressed)
+                            progress=not args.no_progress, compressed=args.compressed,
+                            stamp_jitter_s=args.stamp_jitter)
     except (ValueError, FileExistsError) as exc:
         print(f"rsvo_synth: {exc}", file=sys.stderr)
         return EXIT_USAGE

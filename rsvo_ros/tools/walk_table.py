@@ -1,7 +1,7 @@
 """Issue 13's walk targets on fresh hand-held walks: under 3 % of the path, the scale kept.
 
     python -m rsvo_ros.tools.walk_table OUT --seeds 1600-1615 [--frames 300] [--severity 0.7]
-        [--jobs 2] [--window-option NAME=VALUE ...] [--decimation D]
+        [--jobs 2] [--window-option NAME=VALUE ...] [--decimation D] [--stamp-jitter S]
 
 For each seed a 30 Hz hand-held walk is written (``rsvo_synth --motion walk --severity 0.7
 --frames 300 --seed N``: every walk of 8 s or more stops and looks 40 deg left and right) or
@@ -101,14 +101,19 @@ def size_by_second(stamps_s: np.ndarray, gt_xyz: np.ndarray,
 
 
 def run_walk(out: Path, seed: int, frames: int, severity: float,
-             window_options: list[tuple[str, float]], decimation: int) -> dict:  # fmt: skip
+             window_options: list[tuple[str, float]], decimation: int,
+             stamp_jitter_s: float = 0.0) -> dict:  # fmt: skip
     """Write (or reuse) one walk's bag, replay it and return its row (with ``error`` and no
-    figures where the bag cannot be written or replayed: the other walks go on)."""
-    bag = out / "bags" / f"walk_sev{severity:g}_{frames}f_seed{seed}"
+    figures where the bag cannot be written or replayed: the other walks go on).
+    ``stamp_jitter_s`` > 0: the bag's stamps late by up to that (``rsvo_synth
+    --stamp-jitter``), in a bag of its own name."""
+    jitter = f"_jitter{stamp_jitter_s:g}" if stamp_jitter_s > 0 else ""
+    bag = out / "bags" / f"walk_sev{severity:g}_{frames}f_seed{seed}{jitter}"
     try:
         if not (bag / "metadata.yaml").exists():
             write_bag(bag, SynthConfig(frames=frames, motion="walk", severity=severity,
-                                       seed=seed), overwrite=True, progress=False)
+                                       seed=seed), overwrite=True, progress=False,
+                      stamp_jitter_s=stamp_jitter_s)  # fmt: skip
         options = PipelineOptions()
         set_window_options(options, window_options)
         options.tracker.decimation = decimation
@@ -230,6 +235,11 @@ def main(argv: list[str] | None = None) -> int:
                    metavar="NAME=VALUE", help="a numeric WindowOptions field (repeatable)")
     p.add_argument("--decimation", type=int, default=1,
                    help=f"track at 1/D of the resolution (1-{MAX_DECIMATION}; default 1)")
+    p.add_argument("--stamp-jitter", type=float, default=0.0, metavar="S",
+                   help="the walks' stamps late by a uniform 0-S seconds (rsvo_synth "
+                        "--stamp-jitter: a live driver's stamps); the same walks once more "
+                        "with it show how far single walks move under a change that is no "
+                        "change of method (README, \"How far a walk moves\"; default 0)")
     args = p.parse_args(argv)
     try:
         seeds = parse_seeds(args.seeds)
@@ -239,12 +249,15 @@ def main(argv: list[str] | None = None) -> int:
                              f"check compares the run with its first {SCALE_CHECK_FRAMES})")
         if args.jobs < 1 or not args.severity >= 0:
             raise ValueError("--jobs must be at least 1 and --severity at least 0")
+        if not 0 <= args.stamp_jitter < 1.0 / SynthConfig(motion="walk").rate_hz:
+            raise ValueError(f"--stamp-jitter must be at least 0 s and under one frame "
+                             f"interval, got {args.stamp_jitter!r}")
     except ValueError as exc:
         print(f"walk_table: {exc}", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
-    jobs = [(args.out, seed, args.frames, args.severity, args.window_option, args.decimation)
-            for seed in seeds]
+    jobs = [(args.out, seed, args.frames, args.severity, args.window_option, args.decimation,
+             args.stamp_jitter) for seed in seeds]
     rows = run_cases(run_walk, jobs, args.jobs, _describe)
     meta = {"command": "python -m rsvo_ros.tools.walk_table " + " ".join(
         sys.argv[1:] if argv is None else argv), "rows": rows}

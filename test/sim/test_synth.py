@@ -23,8 +23,8 @@ from rsvo_ros.sim.synth import (
     project_points,
     render_sequence,
 )
+from rsvo_ros.tools.synth_bag import jittered_stamps_ns, write_bag
 from rsvo_ros.tools.synth_bag import main as synth_main
-from rsvo_ros.tools.synth_bag import write_bag
 
 DOT_TOL_PX = 0.5  # issue: dots land within 0.5 px of their exact RS projection
 MAX_BLOB_AREA_PX = 30
@@ -367,6 +367,41 @@ def test_bag_round_trip(tmp_path, storage):
         tw = gt.twist.twist
         assert np.allclose([tw.angular.x, tw.angular.y, tw.angular.z], frames[k].w)
         assert np.allclose([tw.linear.x, tw.linear.y, tw.linear.z], frames[k].v)
+
+
+def test_a_bag_with_a_drivers_stamp_jitter(tmp_path, capsys):
+    """``--stamp-jitter S``: every message of frame k is stamped k / rate plus a uniform delay
+    under S (a driver stamping on arrival), the same for the same seed, the images and ground
+    truth still the nominal instant's; the bag says so. A jitter of one frame interval or more
+    (frames out of order) or below 0 is refused."""
+    cfg = SynthConfig(frames=6, motion="walk", width=96, height=54, seed=4)
+    path = tmp_path / "jittered"
+    assert synth_main([str(path), "--frames", "6", "--motion", "walk", "--resolution", "96x54",
+                       "--seed", "4", "--stamp-jitter", "0.003", "--no-progress"]) == 0
+    frames = render_sequence(cfg)
+    nominal = [round(f.stamp * 1e9) for f in frames]
+    assert bagio.custom_data(path)["rsvo.stamp_jitter"] == "0.003"
+    with Reader(path) as reader:
+        seen = {}
+        for conn, t_ns, raw in reader.messages():
+            msg = bagio.deserialize(raw, conn.msgtype)
+            seen.setdefault(conn.topic, []).append((t_ns, msg))
+    stamps = [t for t, _ in seen[bagio.IMAGE_TOPIC]]
+    late = np.array(stamps) - np.array(nominal)
+    assert (late >= 0).all() and (late < 3_000_000).all() and late.std() > 300_000
+    for topic in (bagio.CAMERA_INFO_TOPIC, bagio.GROUND_TRUTH_TOPIC):
+        assert [t for t, _ in seen[topic]] == stamps
+    for k, (_, img) in enumerate(seen[bagio.IMAGE_TOPIC]):
+        assert np.array_equal(img.data.reshape(54, 96), frames[k].image)
+    _, gt = seen[bagio.GROUND_TRUTH_TOPIC][3]
+    assert np.allclose(bagio.pose_of(gt.pose.pose)[1], frames[3].p_world_cam)
+    assert jittered_stamps_ns(cfg, 0.003) == stamps  # the same again
+    assert jittered_stamps_ns(cfg, 0.0) == nominal
+    for bad in ("0.034", "-0.001"):
+        assert synth_main([str(tmp_path / f"bad{bad}"), "--frames", "2", "--motion", "walk",
+                           "--stamp-jitter", bad, "--no-progress"]) == 2
+        assert "the stamp jitter must be at least 0 s and under one frame interval" in \
+            capsys.readouterr().err
 
 
 def test_cli_refuses_to_overwrite_and_validates(tmp_path, capsys):

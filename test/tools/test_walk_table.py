@@ -63,6 +63,6 @@ def test_the_table_writes_and_replays_a_walk_and_refuses_bad_arguments(tmp_path,
     assert "walks: under 3 % of the path" in captured.out
     assert "seed 9 not replayed" in captured.err
     for bad in (["--frames", "100"], ["--seeds", "a-b"], ["--decimation", "5"],
-                ["--jobs", "0"]):
+                ["--jobs", "0"], ["--stamp-jitter", "0.04"], ["--stamp-jitter", "-0.001"]):
         assert main([str(tmp_path / "bad"), *bad]) == 2
         assert "walk_table:" in capsys.readouterr().err
