@@ -86,6 +86,11 @@ class LandmarkMemory:
                 self.ids, self.X = self.ids[newest], self.X[newest]
                 self.desc, self._age = self.desc[newest], self._age[newest]
 
+    def known(self, ids: np.ndarray) -> np.ndarray:
+        """(m,) bool: which of ``ids`` the memory holds (without copying its points)."""
+        with self._lock:
+            return np.isin(np.asarray(ids, np.int64), self.ids)
+
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Copies of ``(ids, X, desc)``."""
         with self._lock:

@@ -966,11 +966,11 @@ class WindowOdometry:
         of the newest keyframe of the window that has one for it (``new`` False: only those
         the memory has)."""
         ids, X = points
-        if not new and len(ids):
-            keep = np.isin(ids, self.memory.snapshot()[0])
-            ids, X = ids[keep], X[keep]
         if self.options.reloc_min_inliers <= 0 or not len(ids):
             return
+        if not new:
+            keep = self.memory.known(ids)
+            ids, X = ids[keep], X[keep]
         kf_ids, kf_desc = [], []
         for kf in self.map.keyframes:  # oldest first: the newest keyframe's descriptor wins
             if kf.descriptors is not None:

@@ -37,7 +37,7 @@ import time
 
 import numpy as np
 
-from rsvo_ros.sim.synth import resolution_arg
+from rsvo_ros.sim.synth import SynthConfig, resolution_arg
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -243,11 +243,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def render_config(frames: int, motion: str, width: int, height: int, rate: float | None,
-                  seed: int):
+                  seed: int) -> SynthConfig:
     """The probe's rendered sequence: ``motion`` sampled at ``rate`` (None: at its own rate);
     its ``tau`` is the line delay the frames have (the readout capped at one frame interval)."""
-    from rsvo_ros.sim.synth import SynthConfig
-
     return SynthConfig(frames=frames, motion=motion, width=width, height=height,
                        frame_rate=rate, seed=seed)
 

@@ -20,15 +20,20 @@ EXIT_USAGE = 2
 STAMP_JITTER_STREAM = 7717  # the stamp jitter's random stream, beside the sequence's seed
 
 
+def check_stamp_jitter(config: SynthConfig, stamp_jitter_s: float) -> None:
+    """``ValueError`` unless ``0 <= stamp_jitter_s`` < one frame interval of ``config``."""
+    interval = 1.0 / config.rate_hz
+    if not 0.0 <= stamp_jitter_s < interval:
+        raise ValueError(f"the stamp jitter must be at least 0 s and under one frame interval "
+                         f"({interval:g} s), got {stamp_jitter_s!r}")
+
+
 def jittered_stamps_ns(config: SynthConfig, stamp_jitter_s: float) -> list[int]:
     """Each frame's stamp (ns) as a camera driver that stamps on arrival gives it: the nominal
     ``k / rate`` plus a uniform delay in ``[0, stamp_jitter_s)``, from a stream seeded by the
     sequence's seed (the same bag twice for the same arguments). ``ValueError`` unless
     ``0 <= stamp_jitter_s`` < one frame interval (the frames keep their order)."""
-    interval = 1.0 / config.rate_hz
-    if not 0.0 <= stamp_jitter_s < interval:
-        raise ValueError(f"the stamp jitter must be at least 0 s and under one frame interval "
-                         f"({interval:g} s), got {stamp_jitter_s!r}")
+    check_stamp_jitter(config, stamp_jitter_s)
     nominal = [round(k / config.rate_hz * 1e9) for k in range(config.frames)]
     if stamp_jitter_s == 0:
         return nominal

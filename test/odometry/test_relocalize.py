@@ -84,6 +84,7 @@ def test_the_memory_overwrites_and_keeps_the_newest():
     ids, X, desc = mem.snapshot()
     assert sorted(ids.tolist()) == [1, 2, 3, 4, 5]
     assert X[ids == 3][0].tolist() == [1.0, 1.0, 1.0] and desc[ids == 3][0, 0] == 1
+    assert mem.known(np.array([5, 6, 1])).tolist() == [True, False, True]
     mem.update(np.array([6, 7]), np.full((2, 3), 2.0), d[:2])
     ids, _, _ = mem.snapshot()
     assert sorted(ids.tolist()) == [3, 4, 5, 6, 7]  # 1 and 2 were written first: dropped
