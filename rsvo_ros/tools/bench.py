@@ -180,6 +180,40 @@ def summarize(records: list[TrialRecord]) -> dict:
     return summary
 
 
+# issue 14's speed target for the RS estimator: a median per pair over the whole bench
+RS_TIME_TARGET_MS = 12.0
+
+
+def pair_times(records: list[TrialRecord]) -> dict:
+    """Each method's median time per pair over every pair of the run (all levels and noise
+    types; issue 14's figure), with the number of pairs, and the RS estimator's median against
+    OpenCV's USAC_MAGSAC's in the same run (None without both)."""
+    by_method: dict = {}
+    for r in records:
+        if np.isfinite(r.time_ms):
+            by_method.setdefault(r.method, []).append(r.time_ms)
+    out = {"median_ms": {m: float(np.median(t)) for m, t in by_method.items()},
+           "pairs": {m: len(t) for m, t in by_method.items()},
+           "target_ms": RS_TIME_TARGET_MS}
+    rs, gs = out["median_ms"].get("RS (ours)"), out["median_ms"].get("GS OpenCV USAC_MAGSAC")
+    out["rs_over_magsac"] = rs / gs if rs is not None and gs else None
+    return out
+
+
+def format_pair_times(times: dict) -> str:
+    """One line: every method's median per pair over the run, and the RS / MAGSAC ratio."""
+    parts = [f"{m} {t:.2f} ms" for m, t in times["median_ms"].items()]
+    n = max(times["pairs"].values(), default=0)
+    line = f"Time per pair over all {n} pairs, median: " + ", ".join(parts)
+    rs, ratio = times["median_ms"].get("RS (ours)"), times["rs_over_magsac"]
+    if ratio is not None:
+        line += f" (RS / MAGSAC {ratio:.2f} in this run)"
+    if rs is not None:
+        met = "met" if rs <= times["target_ms"] else "not met"
+        line += f"; the RS target of {times['target_ms']:g} ms per pair: {met}"
+    return line
+
+
 def _fmt(x, spec=".3f"):
     return "   -  " if x is None else format(x, spec)
 
@@ -368,6 +402,7 @@ def main(argv: list[str] | None = None) -> int:
     records = run(levels, args.noise, trials, args.seed, args.paper_mode,
                   progress=not args.no_progress)
     summary = summarize(records)
+    times = pair_times(records)
     args.output.mkdir(parents=True, exist_ok=True)
     meta = {
         "command": "rsvo_bench " + " ".join(sys.argv[1:] if argv is None else argv),
@@ -379,11 +414,14 @@ def main(argv: list[str] | None = None) -> int:
         "wall_time_s": time.perf_counter() - t0,
     }  # fmt: skip
     with open(args.output / "bench.json", "w") as f:
-        json.dump({"meta": meta, "summary": summary, "paper_table1": PAPER_TABLE1,
+        json.dump({"meta": meta, "summary": summary, "pair_times": times,
+                   "paper_table1": PAPER_TABLE1,
                    "records": [asdict(r) for r in records]}, f, indent=1)  # fmt: skip
-    (args.output / "bench.md").write_text(format_markdown(summary, levels) + "\n")
+    (args.output / "bench.md").write_text(format_markdown(summary, levels) + "\n\n"
+                                          + format_pair_times(times) + "\n")
     box_plot(records, levels, args.output / "bench_boxplot.png")
     print(format_table(summary, levels))
+    print("\n" + format_pair_times(times))
     print(f"\n{len(records)} estimates in {meta['wall_time_s']:.1f} s; wrote "
           f"{args.output / 'bench.json'}, bench.md (the README's table) and "
           f"{args.output / 'bench_boxplot.png'}")

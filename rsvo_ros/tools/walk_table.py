@@ -2,6 +2,7 @@
 
     python -m rsvo_ros.tools.walk_table OUT --seeds 1600-1615 [--frames 300] [--severity 0.7]
         [--jobs 2] [--window-option NAME=VALUE ...] [--decimation D] [--stamp-jitter S]
+        [--against OTHER_OUT]
 
 For each seed a 30 Hz hand-held walk is written (``rsvo_synth --motion walk --severity 0.7
 --frames 300 --seed N``: every walk of 8 s or more stops and looks 40 deg left and right) or
@@ -13,6 +14,9 @@ with a pose, map re-finds, and the estimate's size against the truth second by s
 Sim(3) scale of each second's positions, relative to the first 60 frames': where a walk loses
 or gains its scale). Writes ``walks.md``, ``walks.json`` and ``walk_scale.png`` into OUT.
 Use seeds nobody has tuned on for a verdict: the README says which were looked at.
+``--against`` compares the walks seed by seed with an earlier table's (an A/B run); the same
+walks with ``--stamp-jitter 0.001`` against the plain ones show how far they move without a
+change of method: the floor an A/B difference has to clear.
 """
 
 from __future__ import annotations
@@ -183,6 +187,55 @@ def summary(rows: list[dict]) -> str:
             f"geometric mean" + (f"; not replayed: seeds {failed}" if failed else ""))
 
 
+def read_rows(path: Path) -> list[dict]:
+    """The rows of an earlier walk table (its ``walks.json``, or the directory holding it);
+    ``ValueError`` naming the file where it is missing or not a walk table's."""
+    path = path / "walks.json" if path.is_dir() else path
+    try:
+        rows = json.loads(path.read_text())["rows"]
+        if not all("seed" in r and "ate_m" in r for r in rows):
+            raise KeyError("seed/ate_m")
+    except FileNotFoundError:
+        raise ValueError(f"--against: no walk table at {path}") from None
+    except OSError as exc:
+        raise ValueError(f"--against: cannot read {path}: {exc}") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"--against: {path} is not a walk table's walks.json ({exc})") from None
+    return rows
+
+
+def compare(rows: list[dict], base: list[dict]) -> dict:
+    """Each seed replayed in both tables: this table's ATE over the other's (``ratios``, by
+    seed), their geometric mean, how many are the same to 1e-9 m or within 10 %, and both
+    tables' target counts over those seeds (an A/B verdict; the other is the baseline)."""
+    old = {r["seed"]: r for r in base if r.get("ate_m")}
+    both = [(r, old[r["seed"]]) for r in rows if r.get("ate_m") and r["seed"] in old]
+    ratios = {r["seed"]: r["ate_m"] / b["ate_m"] for r, b in both}
+
+    def counts(sel):
+        v = [verdicts(r) for r in sel]
+        return {k: sum(x[k] is True for x in v) for k in ("path", "scale")}
+
+    return {"seeds": len(both), "ratios": ratios,
+            "ratio_gmean": gmean(ratios.values()) if ratios else None,
+            "same": sum(abs(r["ate_m"] - b["ate_m"]) <= 1e-9 for r, b in both),
+            "within_10_percent": sum(abs(q - 1.0) <= 0.1 for q in ratios.values()),
+            "this": counts([r for r, _ in both]), "base": counts([b for _, b in both])}
+
+
+def format_comparison(c: dict, base_name: str) -> str:
+    if not c["seeds"]:
+        return f"Against {base_name}: no seed replayed in both tables."
+    q = c["ratios"]
+    lo, hi = min(q, key=q.get), max(q, key=q.get)
+    return (f"Against {base_name} ({c['seeds']} walks in both): ATE {c['ratio_gmean']:.3f}x in "
+            f"geometric mean (per walk {q[lo]:.2f}x, seed {lo}, to {q[hi]:.2f}x, seed {hi}); "
+            f"{c['same']} the same, {c['within_10_percent']} within 10 %; under "
+            f"{100 * PATH_SHARE_TARGET:g} % of the path on {c['this']['path']} against "
+            f"{c['base']['path']}, scale within {100 * SCALE_TARGET:g} % on "
+            f"{c['this']['scale']} against {c['base']['scale']}")
+
+
 def plot(path: Path, rows: list[dict]) -> None:
     import matplotlib
     import matplotlib.ticker
@@ -240,6 +293,11 @@ def main(argv: list[str] | None = None) -> int:
                         "--stamp-jitter: a live driver's stamps); the same walks once more "
                         "with it show how far single walks move under a change that is no "
                         "change of method (README, \"How far a walk moves\"; default 0)")
+    p.add_argument("--against", type=Path, default=None, metavar="TABLE",
+                   help="an earlier walk table (its OUT or walks.json) to compare with, seed "
+                        "by seed: ATE ratios, their geometric mean, the target counts of both "
+                        "(A/B runs; a run with --stamp-jitter against the plain one gives "
+                        "the noise floor to judge them by)")
     args = p.parse_args(argv)
     try:
         seeds = parse_seeds(args.seeds)
@@ -250,6 +308,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.jobs < 1 or not args.severity >= 0:
             raise ValueError("--jobs must be at least 1 and --severity at least 0")
         check_stamp_jitter(SynthConfig(motion="walk"), args.stamp_jitter)
+        base = None if args.against is None else read_rows(args.against)
     except ValueError as exc:
         print(f"walk_table: {exc}", file=sys.stderr)
         return 2
@@ -259,10 +318,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = run_cases(run_walk, jobs, args.jobs, _describe)
     meta = {"command": "python -m rsvo_ros.tools.walk_table " + " ".join(
         sys.argv[1:] if argv is None else argv), "rows": rows}
+    text = summary(rows)
+    if base is not None:
+        meta["against"] = {"table": str(args.against), **compare(rows, base)}
+        text += "\n\n" + format_comparison(meta["against"], str(args.against))
     (args.out / "walks.json").write_text(json.dumps(meta, indent=1))
-    (args.out / "walks.md").write_text(table(rows) + "\n\n" + summary(rows) + "\n")
+    (args.out / "walks.md").write_text(table(rows) + "\n\n" + text + "\n")
     plot(args.out / "walk_scale.png", rows)
-    print(summary(rows))
+    print(text)
     print(f"wrote {args.out / 'walks.md'}, walks.json, walk_scale.png")
     for r in rows:
         if "error" in r:

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rsvo_ros.tools.walk_table import main, parse_seeds, sim3_scale, size_by_second
+from rsvo_ros.tools.walk_table import (
+    compare,
+    format_comparison,
+    main,
+    parse_seeds,
+    sim3_scale,
+    size_by_second,
+)
 
 
 def test_seeds_and_ranges_are_parsed_and_bad_ones_refused():
@@ -62,7 +69,42 @@ def test_the_table_writes_and_replays_a_walk_and_refuses_bad_arguments(tmp_path,
     captured = capsys.readouterr()
     assert "walks: under 3 % of the path" in captured.out
     assert "seed 9 not replayed" in captured.err
+    # the same walk again, against the table above (read before it is overwritten): replayed
+    # from its bag it is the same walk to the bit
+    assert main([str(out), "--seeds", "5", "--frames", "120", "--against", str(out)]) == 0
+    against = json.loads((out / "walks.json").read_text())["against"]
+    assert against["seeds"] == 1 and against["same"] == 1 and against["ratios"] == {"5": 1.0}
+    assert f"Against {out} (1 walks in both): ATE 1.000x" in capsys.readouterr().out
+    assert "Against" in (out / "walks.md").read_text()
+    (tmp_path / "other.json").write_text('{"rows": [{"frames": 3}]}')
     for bad in (["--frames", "100"], ["--seeds", "a-b"], ["--decimation", "5"],
-                ["--jobs", "0"], ["--stamp-jitter", "0.04"], ["--stamp-jitter", "-0.001"]):
+                ["--jobs", "0"], ["--stamp-jitter", "0.04"], ["--stamp-jitter", "-0.001"],
+                ["--against", str(tmp_path / "none")],
+                ["--against", str(tmp_path / "other.json")]):
         assert main([str(tmp_path / "bad"), *bad]) == 2
         assert "walk_table:" in capsys.readouterr().err
+
+
+def _row(seed, ate, share, scale):
+    return {"seed": seed, "ate_m": ate, "ate_share": share, "scale_ratio": scale,
+            "frames": 300, "posed": 300, "held": 0}
+
+
+def test_a_table_is_compared_with_another_seed_by_seed():
+    """Seeds in both tables only, a walk that failed in either left out; the ratios are
+    this table's ATE over the other's, the counts each table's own over the shared seeds."""
+    base = [_row(1, 0.10, 0.01, 1.00), _row(2, 0.20, 0.04, 1.20), _row(3, 0.10, 0.01, 1.0),
+            _row(4, 0.30, 0.02, 1.0), {**_row(5, None, None, None), "error": "x"}]
+    this = [_row(1, 0.10, 0.01, 1.00), _row(2, 0.10, 0.02, 1.05), _row(3, 0.40, 0.05, 1.5),
+            _row(5, 0.10, 0.01, 1.0), _row(6, 0.10, 0.01, 1.0)]
+    c = compare(this, base)
+    assert c["seeds"] == 3 and c["ratios"] == {1: 1.0, 2: 0.5, 3: 4.0}
+    assert c["ratio_gmean"] == pytest.approx(2.0 ** (1 / 3))
+    assert c["same"] == 1 and c["within_10_percent"] == 1
+    assert c["this"] == {"path": 2, "scale": 2} and c["base"] == {"path": 2, "scale": 2}
+    text = format_comparison(c, "base")
+    assert text.startswith("Against base (3 walks in both): ATE 1.260x in geometric mean "
+                           "(per walk 0.50x, seed 2, to 4.00x, seed 3); 1 the same")
+    assert "under 3 % of the path on 2 against 2" in text
+    assert format_comparison(compare(this, []), "b") == "Against b: no seed replayed in both " \
+                                                        "tables."
