@@ -187,14 +187,19 @@ def summary(rows: list[dict]) -> str:
             f"geometric mean" + (f"; not replayed: seeds {failed}" if failed else ""))
 
 
+# what a row needs to be compared (its ATE and the targets' verdicts)
+ROW_KEYS = ("seed", "ate_m", "ate_share", "scale_ratio", "frames", "posed", "held")
+
+
 def read_rows(path: Path) -> list[dict]:
     """The rows of an earlier walk table (its ``walks.json``, or the directory holding it);
     ``ValueError`` naming the file where it is missing or not a walk table's."""
     path = path / "walks.json" if path.is_dir() else path
     try:
         rows = json.loads(path.read_text())["rows"]
-        if not all("seed" in r and "ate_m" in r for r in rows):
-            raise KeyError("seed/ate_m")
+        missing = {k for r in rows for k in ROW_KEYS if k not in r}
+        if missing:
+            raise KeyError(", ".join(sorted(missing)))
     except FileNotFoundError:
         raise ValueError(f"--against: no walk table at {path}") from None
     except OSError as exc:
@@ -224,6 +229,7 @@ def compare(rows: list[dict], base: list[dict]) -> dict:
 
 
 def format_comparison(c: dict, base_name: str) -> str:
+    """:func:`compare`'s result as one line, the other table named ``base_name``."""
     if not c["seeds"]:
         return f"Against {base_name}: no seed replayed in both tables."
     q = c["ratios"]

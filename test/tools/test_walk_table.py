@@ -77,10 +77,14 @@ def test_the_table_writes_and_replays_a_walk_and_refuses_bad_arguments(tmp_path,
     assert f"Against {out} (1 walks in both): ATE 1.000x" in capsys.readouterr().out
     assert "Against" in (out / "walks.md").read_text()
     (tmp_path / "other.json").write_text('{"rows": [{"frames": 3}]}')
+    (tmp_path / "partial.json").write_text('{"rows": [{"seed": 5, "ate_m": 0.1}]}')
+    (tmp_path / "text.json").write_text("seed 5: 0.1 m")
     for bad in (["--frames", "100"], ["--seeds", "a-b"], ["--decimation", "5"],
                 ["--jobs", "0"], ["--stamp-jitter", "0.04"], ["--stamp-jitter", "-0.001"],
                 ["--against", str(tmp_path / "none")],
-                ["--against", str(tmp_path / "other.json")]):
+                ["--against", str(tmp_path / "other.json")],
+                ["--against", str(tmp_path / "partial.json")],
+                ["--against", str(tmp_path / "text.json")]):
         assert main([str(tmp_path / "bad"), *bad]) == 2
         assert "walk_table:" in capsys.readouterr().err
 
