@@ -14,7 +14,8 @@ with a pose, map re-finds, and the estimate's size against the truth second by s
 Sim(3) scale of each second's positions, relative to the first 60 frames': where a walk loses
 or gains its scale). Writes ``walks.md``, ``walks.json`` and ``walk_scale.png`` into OUT.
 Use seeds nobody has tuned on for a verdict: the README says which were looked at.
-``--against`` compares the walks seed by seed with an earlier table's (an A/B run); the same
+``--against`` compares the walks seed by seed with an earlier table's (an A/B run; the ATE
+of each walk in both, ``walk_against.png``); the same
 walks with ``--stamp-jitter 0.001`` against the plain ones show how far they move without a
 change of method: the floor an A/B difference has to clear.
 """
@@ -242,6 +243,59 @@ def format_comparison(c: dict, base_name: str) -> str:
             f"{c['this']['scale']} against {c['base']['scale']}")
 
 
+def plot_against(path: Path, rows: list[dict], base: list[dict], c: dict,
+                 base_name: str) -> None:  # fmt: skip
+    """Each walk's ATE in this table against the other's (log-log), the line of equal ATE and
+    a band of +-10 % around it; a walk that misses the path target in either table is drawn
+    hollow in that table's colour."""
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    this = {r["seed"]: r for r in rows}
+    old = {r["seed"]: r for r in base}
+    seeds = [int(s) for s in c["ratios"]]
+    x = np.array([old[s]["ate_m"] for s in seeds])
+    y = np.array([this[s]["ate_m"] for s in seeds])
+    fig, ax = plt.subplots(figsize=(5.2, 5.0))
+    if len(seeds):
+        lo, hi = 0.8 * min(x.min(), y.min()), 1.25 * max(x.max(), y.max())
+        d = np.array([lo, hi])
+        ax.fill_between(d, d / 1.1, d * 1.1, color="0.9", label="within 10 %")
+        ax.plot(d, d, "k-", lw=0.8)
+        missed = np.array([verdicts(this[s])["path"] is False or verdicts(old[s])["path"]
+                           is False for s in seeds])  # fmt: skip
+        ax.scatter(x[~missed], y[~missed], s=22, color="tab:blue", zorder=3)
+        ax.scatter(x[missed], y[missed], s=40, facecolors="none", edgecolors="tab:red",
+                   zorder=3, label="over 3 % of the path in either")
+        for s, xi, yi in zip(seeds, x, y, strict=True):
+            ax.annotate(str(s), (xi, yi), fontsize=6, xytext=(3, 2),
+                        textcoords="offset points")
+        ax.set_xlim(lo, hi)
+        ax.set_ylim(lo, hi)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        plain = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_formatter(plain)
+            axis.set_minor_locator(matplotlib.ticker.LogLocator(subs=(2.0, 3.0, 5.0)))
+            axis.set_minor_formatter(plain)
+        ax.legend(fontsize=7, loc="upper left")
+        ax.set_title(f"ATE {c['ratio_gmean']:.3f}x in geometric mean over {len(seeds)} walks",
+                     fontsize=9)
+    else:
+        ax.text(0.5, 0.5, "no walk in both tables", ha="center", transform=ax.transAxes)
+    ax.set_xlabel(f"ATE (m), {base_name}", fontsize=8)
+    ax.set_ylabel("ATE (m), this table")
+    ax.tick_params(labelsize=7, which="both")
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def plot(path: Path, rows: list[dict]) -> None:
     import matplotlib
     import matplotlib.ticker
@@ -331,8 +385,13 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "walks.json").write_text(json.dumps(meta, indent=1))
     (args.out / "walks.md").write_text(table(rows) + "\n\n" + text + "\n")
     plot(args.out / "walk_scale.png", rows)
+    written = "walks.json, walk_scale.png"
+    if base is not None:
+        plot_against(args.out / "walk_against.png", rows, base, meta["against"],
+                     str(args.against))
+        written += ", walk_against.png"
     print(text)
-    print(f"wrote {args.out / 'walks.md'}, walks.json, walk_scale.png")
+    print(f"wrote {args.out / 'walks.md'}, {written}")
     for r in rows:
         if "error" in r:
             print(f"walk_table: seed {r['seed']} not replayed: {r['error']}", file=sys.stderr)

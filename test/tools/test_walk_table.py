@@ -76,6 +76,7 @@ def test_the_table_writes_and_replays_a_walk_and_refuses_bad_arguments(tmp_path,
     assert against["seeds"] == 1 and against["same"] == 1 and against["ratios"] == {"5": 1.0}
     assert f"Against {out} (1 walks in both): ATE 1.000x" in capsys.readouterr().out
     assert "Against" in (out / "walks.md").read_text()
+    assert (out / "walk_against.png").stat().st_size > 0
     (tmp_path / "other.json").write_text('{"rows": [{"frames": 3}]}')
     (tmp_path / "partial.json").write_text('{"rows": [{"seed": 5, "ate_m": 0.1}]}')
     (tmp_path / "text.json").write_text("seed 5: 0.1 m")
