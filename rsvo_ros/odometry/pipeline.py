@@ -19,6 +19,7 @@ import dataclasses
 import functools
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -265,6 +266,9 @@ class OdometryPipeline:
             self._refine_unprocessed = 0  # of them, frames the caller did not process
             # (RefineJob, the estimate it refines, start time) while it runs
             self._refine_job: tuple | None = None
+            # the estimate the running refinement started from: read (once), and when it was
+            # put in use (ms after the refinement began; None: not taken before its end)
+            self._refine_start_seen, self._refine_start_ms = False, None
             self.line_delay_auto_refinement: dict | None = None
             if self.options.line_delay_auto and self.options.model == "rs":
                 self.line_delay_estimate = LineDelayEstimate(
@@ -544,6 +548,16 @@ class OdometryPipeline:
             self._refine_job = None
             start, ref = job[0].result()
             self._take_refined(ref, start or job[1], job[1], job[2], stamp_ns)
+        elif job is not None and not self._refine_start_seen:
+            # the process has estimated over all the windows and runs the second pass: its
+            # start, more windows than the running estimate's, is used meanwhile (the node's
+            # second pass takes seconds: README, "The refinement's start in use at once")
+            start = job[0].started_from()
+            if start is not None:
+                self._refine_start_seen = True
+                if self._replaces(start, job[1]):
+                    self._take_estimate(start, stamp_ns)
+                    self._refine_start_ms = (time.perf_counter() - job[2]) * 1e3
         frames, n = self._refine_frames, self.options.line_delay_auto_refine_frames
         if frames is None or len(frames) < n:
             return
@@ -571,6 +585,7 @@ class OdometryPipeline:
             args = (self.K, self.D, self.options, frames,
                     None if cal is None else cal.snapshot(), interval, e)  # fmt: skip
             self._refine_job = (RefineJob(args), e, t0)
+            self._refine_start_seen, self._refine_start_ms = False, None
         else:
             start, ref = refine_from_estimate(self.K, self.D, self.options, frames, cal,
                                               interval, e)  # fmt: skip
@@ -592,6 +607,7 @@ class OdometryPipeline:
             "first_windows": start.windows,
             "running_line_delay_s": running.line_delay_s,
             "frames_unprocessed": self._refine_unprocessed,
+            "first_in_use_after_ms": self._refine_start_ms,
             "time_ms": (time.perf_counter() - t0) * 1e3, "stamp_ns": int(stamp_ns)}
         if ref.status == "refined" and first and ref.line_delay_s \
                 and np.isfinite(ref.line_delay_s):  # fmt: skip
@@ -601,11 +617,18 @@ class OdometryPipeline:
                        f"({ref.blocks} blocks) from {first * 1e6:.2f} us/row"),
                 stamp_ns)  # fmt: skip
             return
-        now = self.line_delay_estimate
-        if start != running and start.status in ("estimated", "converged") \
-                and now.status not in ("converged", "refined") \
-                and start.windows >= now.windows:  # fmt: skip
+        if self._replaces(start, running):
             self._take_estimate(start, stamp_ns)
+
+    def _replaces(self, start: LineDelayEstimate, running: LineDelayEstimate) -> bool:
+        """Whether a refinement's ``start`` (the calibrator's estimate over all its windows;
+        ``running`` the estimate in use when the refinement began) is to replace the
+        estimate in use now: a new estimate of at least as many windows, unless that one is
+        converged or refined (taken once: not again when the refinement ends unrefined)."""
+        now = self.line_delay_estimate
+        return start != running and start != now \
+            and start.status in ("estimated", "converged") \
+            and now.status not in ("converged", "refined") and start.windows >= now.windows
 
     def _set_line_delay(self, line_delay: float) -> None:
         if line_delay != self.line_delay:
@@ -848,12 +871,15 @@ def refine_pass(K: np.ndarray, D: LensModel | None, line_delay: float,
 def refine_from_estimate(K: np.ndarray, D: LensModel | None, options: PipelineOptions,
                          frames: list[tuple[int, np.ndarray]],
                          calibrator: LineDelayCalibrator | None, frame_interval_s: float,
-                         running: LineDelayEstimate
+                         running: LineDelayEstimate,
+                         on_start: Callable[[LineDelayEstimate], None] | None = None,
                          ) -> tuple[LineDelayEstimate, RefinedLineDelay]:  # fmt: skip
     """line_delay auto's refinement after its first ``frames``: the ``calibrator``'s estimate
     over all its windows so far (``running``, the estimate in use, where that gives none),
     refined by :func:`refine_pass` over the frames. Returns the estimate it started from and
-    the refinement ("not refined" for a zero or no estimate: nothing to refine). The
+    the refinement ("not refined" for a zero or no estimate: nothing to refine);
+    ``on_start(start)`` is called before the second pass (the node's worker hands the estimate
+    over then, to be used while the pass runs). The
     calibrator's own estimates come every few windows and, with async mapping, on a thread
     that falls behind: by the node's 150th frame they covered 5 of the 9-52 windows, or none,
     on the line-delay table's sequences (README, "The node's refinement: all the windows, all
@@ -872,6 +898,8 @@ def refine_from_estimate(K: np.ndarray, D: LensModel | None, options: PipelineOp
                f"{start.reason})")  # fmt: skip
         return start, RefinedLineDelay("not refined", frames=len(frames),
                                        reason=f"{why}: nothing to refine")  # fmt: skip
+    if on_start is not None:
+        on_start(start)
     return start, refine_pass(K, D, float(start.line_delay_s), options, frames)
 
 

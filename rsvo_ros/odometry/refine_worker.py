@@ -6,8 +6,9 @@ file (:class:`RefineJob`), a ``nice -n 19`` Python (in the idle scheduling class
 runs: :func:`lower_thread_priority`) runs
 :func:`~rsvo_ros.odometry.pipeline.refine_from_estimate` on them (an estimate over all the
 windows, then the second pass; ``python -m rsvo_ros.odometry.refine_worker IN OUT``) and
-writes its results; the pipeline polls
-the process at each frame. A process, not a thread: on a thread the second pass held the GIL
+writes its results; the pipeline polls the process at each frame. Before the second pass it
+writes the estimate it starts from (:meth:`RefineJob.started_from`), which the pipeline uses
+while the pass runs. A process, not a thread: on a thread the second pass held the GIL
 against the tracking and cost half the frames at 1280x720, 15 Hz (README, "Refining the
 estimate"); niced from its start, so that its imports take only what the tracking leaves too.
 """
@@ -27,6 +28,8 @@ from pathlib import Path
 from rsvo_ros.odometry.line_delay import LineDelayEstimate, RefinedLineDelay
 
 LOWEST_PRIORITY = 19  # nice value of the background work (the refinement, the calibrator)
+# beside the results: the estimate the second pass starts from, written before the pass
+START_FILE = "start.pickle"
 
 
 def lower_thread_priority(niceness: int = LOWEST_PRIORITY) -> bool:
@@ -60,6 +63,8 @@ class RefineJob:
     def __init__(self, args: tuple):
         self._dir = Path(tempfile.mkdtemp(prefix="rsvo_refine_"))
         self._in, self._out = self._dir / "in.pickle", self._dir / "out.pickle"
+        self._start_file = self._dir / START_FILE
+        self._started_from: LineDelayEstimate | None = None
         self._proc: subprocess.Popen | None = None
         self._error: str | None = None
         self._cancelled = False
@@ -89,6 +94,18 @@ class RefineJob:
         if self._starter.is_alive():
             return False
         return self._proc is None or self._proc.poll() is not None
+
+    def started_from(self) -> LineDelayEstimate | None:
+        """The estimate the second pass started from (the calibrator's over all its windows),
+        once the process has handed it over, before the pass ends; None before (or if the
+        process gives none)."""
+        if self._started_from is None and self._start_file.exists():
+            try:
+                with open(self._start_file, "rb") as f:
+                    self._started_from = LineDelayEstimate(**pickle.load(f))
+            except (OSError, EOFError, pickle.UnpicklingError, TypeError):
+                return None  # removed by a cancel meanwhile, or not the worker's
+        return self._started_from
 
     def wait(self, timeout: float) -> None:
         """Until done, at most about ``timeout`` seconds."""
@@ -141,12 +158,21 @@ def main(argv: list[str] | None = None) -> int:
     src, dst = (argv if argv is not None else sys.argv[1:])[:2]
     with open(src, "rb") as f:
         args = pickle.load(f)
-    start, ref = refine_from_estimate(*args)
-    tmp = Path(dst).with_suffix(".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump((dataclasses.asdict(start), ref.as_dict()), f)
-    tmp.replace(dst)
+
+    def hand_over(start: LineDelayEstimate) -> None:  # read by RefineJob.started_from
+        _write(Path(dst).with_name(START_FILE), dataclasses.asdict(start))
+
+    start, ref = refine_from_estimate(*args, on_start=hand_over)
+    _write(Path(dst), (dataclasses.asdict(start), ref.as_dict()))
     return 0
+
+
+def _write(path: Path, obj) -> None:
+    """Pickle ``obj`` to ``path`` whole or not at all (a reader never sees half a file)."""
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(obj, f)
+    tmp.replace(path)
 
 
 if __name__ == "__main__":

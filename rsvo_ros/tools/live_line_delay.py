@@ -12,9 +12,10 @@ frames arriving at ``--rate`` Hz with the node's newest-frame policy (a frame th
 while another is processed waits; a newer one replaces it, and the replaced one goes to the
 refinement's second pass, as the node hands it over; ``--no-keep-dropped``: not). Prints one
 JSON line per case (the estimate in use when the refinement began, the calibrator's over all
-its windows then, which the refinement starts from, the final one, frames processed, the
-refinement's status and time) and the counts within 10 % of the truth. Run it on an otherwise
-idle machine: what the node drops depends on the CPU it gets. The replay's table runs the same
+its windows then, which the refinement starts from and the node uses from when the process
+hands it over, the final one, frames processed, the refinement's status and time) and the
+counts within 10 % of the truth. Run it on an otherwise idle machine: what the node drops
+depends on the CPU it gets. The replay's table runs the same
 pipeline without async mapping and without pacing (README, "The pipeline refines its own
 estimate after 150 frames", "The node's refinement: all the windows, all the frames").
 """
@@ -74,6 +75,10 @@ def run_case(motion: str, severity: float, seed: int, line_delay: float, frames:
             "final_s": pipe.line_delay_estimate.line_delay_s,
             "status": pipe.line_delay_estimate.status, "refinement": ref.get("status"),
             "refinement_s": (ref.get("time_ms") or 0.0) / 1e3,
+            # the refinement's start put in use while its second pass ran (s after it began;
+            # None: not before its end)
+            "start_in_use_after_s": None if ref.get("first_in_use_after_ms") is None
+            else ref["first_in_use_after_ms"] / 1e3,
             "refinement_frames_unprocessed": ref.get("frames_unprocessed")}
 
 
@@ -123,6 +128,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{sum(within(r[key], r['line_delay_true_s']) for r in rows)} of {len(rows)} "
               f"rolling-shutter cases, median error "
               f"{100 * statistics.median(errors) if errors else float('nan'):.1f} %")
+    early = [r for r in rows if r["start_in_use_after_s"] is not None]
+    print(f"live_line_delay: the estimate over all the windows in use while the second pass "
+          f"ran on {len(early)} of {len(rows)}" + (
+              f", {statistics.median(r['start_in_use_after_s'] for r in early):.1f} s (median) "
+              f"after the refinement began; the pass took "
+              f"{statistics.median(r['refinement_s'] for r in early):.1f} s" if early else ""))
     print(f"live_line_delay: refined on {sum(r['refinement'] == 'refined' for r in rows)} of "
           f"{len(rows)}; frames processed {min(r['processed'] for r in rows)}-"
           f"{max(r['processed'] for r in rows)} of {args.frames}")

@@ -5,18 +5,22 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import pickle
 import threading
+import time
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from conftest import ground_truth_pose
 
+from rsvo_ros.odometry import refine_worker
 from rsvo_ros.odometry.frame import FrameState
 from rsvo_ros.odometry.line_delay import (
     LineDelayCalibrator,
     LineDelayEstimate,
     LineDelayOptions,
+    RefinedLineDelay,
     parabola_min,
 )
 from rsvo_ros.odometry.pipeline import (
@@ -604,6 +608,95 @@ def test_a_refinement_process_that_fails_says_why():
     assert live.line_delay == 5e-5 and live.line_delay_estimate.status == "estimated"
     assert job._proc is not None and job._proc.poll() is not None  # stopped
     assert not job._dir.exists()
+
+
+class _PassRunning:
+    """A refinement job whose process has handed over its start and runs its second pass
+    (``finished``: its outcome once done)."""
+
+    def __init__(self, start):
+        self.start, self.finished, self.reads = start, None, 0
+
+    def done(self):
+        return self.finished is not None
+
+    def started_from(self):
+        self.reads += 1
+        return self.start
+
+    def result(self):
+        return self.finished or (None, RefinedLineDelay("failed", reason="did not finish"))
+
+    def wait(self, timeout):
+        pass
+
+    def cancel(self):
+        pass
+
+
+def test_the_refinements_start_is_used_while_its_second_pass_runs(tmp_path):
+    """The node's refinement process writes the estimate it starts from (the calibrator's
+    over all its windows) before its second pass; the pipeline uses it from the next frame
+    on and the refined one when the pass ends. Taken once (not again when the pass ends
+    unrefined), and not over an estimate of more windows."""
+    K, frames = _walk_frames(31)
+    running = LineDelayEstimate("estimated", 5e-5, 1e-6, 0.54, 0.01, 0.018, 5, 29)
+    # the worker, on a thread of this process (it lowers its own thread's priority): its
+    # start on file beside the results, for the job to read
+    src, dst = tmp_path / "in.pickle", tmp_path / "out.pickle"
+    src.write_bytes(pickle.dumps((K, None, PipelineOptions(line_delay_auto=True),
+                                  frames[:30], None, 1 / 30, running)))
+    exit_codes = []
+    worker = threading.Thread(target=lambda: exit_codes.append(
+        refine_worker.main([str(src), str(dst)])))
+    worker.start()
+    worker.join(300.0)
+    assert exit_codes == [0] and dst.exists()
+    with open(tmp_path / refine_worker.START_FILE, "rb") as f:
+        assert LineDelayEstimate(**pickle.load(f)) == running
+    job = RefineJob(("not", "the arguments"))  # a process that fails: its files stay till read
+    job.wait(120.0)
+    assert job.started_from() is None  # nothing handed over
+    (job._dir / refine_worker.START_FILE).write_bytes((tmp_path / "start.pickle").read_bytes())
+    assert job.started_from() == running
+    job.result()
+    assert not job._dir.exists() and job.started_from() == running  # kept once read
+
+    start = LineDelayEstimate("estimated", 6e-5, 1e-6, 0.64, 0.01, 0.018, 9, 150)
+
+    def pipeline_with(job):
+        pipe = OdometryPipeline(K, None, 0.0, PipelineOptions(line_delay_auto=True))
+        pipe._take_estimate(running, 1)
+        pipe._refine_job = (job, running, time.perf_counter())
+        return pipe
+
+    live = pipeline_with(fake := _PassRunning(start))
+    live._refine_step(2)
+    assert live.line_delay == 6e-5 and live.line_delay_estimate == start
+    live._refine_step(3)
+    assert fake.reads == 1 and live._refine_job is not None  # read once, the pass runs on
+    history = len(live.line_delay_history)
+    fake.finished = (dataclasses.replace(start), RefinedLineDelay("not observable", reason="x"))
+    live._refine_step(4)
+    assert live._refine_job is None and len(live.line_delay_history) == history
+    assert live.line_delay == 6e-5 and live.line_delay_auto_refinement["status"] == \
+        "not observable"
+    assert live.line_delay_auto_refinement["first_in_use_after_ms"] >= 0.0
+    live.close()
+    # refined: the refined value replaces the start
+    live = pipeline_with(fake := _PassRunning(start))
+    live._refine_step(2)
+    fake.finished = (start, RefinedLineDelay("refined", 5.5e-5, 1e-6, 8, 150))
+    live._refine_step(3)
+    assert live.line_delay == 5.5e-5 and live.line_delay_estimate.status == "refined"
+    live.close()
+    # an estimate of more windows in use meanwhile: the start is not taken
+    live = pipeline_with(_PassRunning(start))
+    live._take_estimate(dataclasses.replace(running, windows=12), 2)
+    live._refine_step(3)
+    assert live.line_delay == 5e-5 and live.line_delay_estimate.windows == 12
+    assert live._refine_start_ms is None
+    live.close()
 
 
 def _priority(tid: int) -> tuple[int, int]:

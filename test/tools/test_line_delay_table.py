@@ -80,6 +80,8 @@ def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
         "rolling-shutter cases" in text
     assert "the estimate in use (the calibrator thread's last) within 10 % on 0 of 1" in text
     assert row["refinement_frames_unprocessed"] is None and row["running_s"] is None
+    assert row["start_in_use_after_s"] is None  # no refinement
+    assert "in use while the second pass ran on 0 of 1" in text
     assert live_within(5.4e-5, 5e-5) and not live_within(None, 5e-5)
     assert live_main(["--rate", "0"]) == 2
     assert live_main(["--cases", "0"]) == 2  # no case: refused, not a crash on no rows
