@@ -247,7 +247,7 @@ def plot_against(path: Path, rows: list[dict], base: list[dict], c: dict,
                  base_name: str) -> None:  # fmt: skip
     """Each walk's ATE in this table against the other's (log-log), the line of equal ATE and
     a band of +-10 % around it; a walk that misses the path target in either table is drawn
-    hollow in that table's colour."""
+    as a hollow red circle."""
     import matplotlib
     import matplotlib.ticker
 
