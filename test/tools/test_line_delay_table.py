@@ -73,6 +73,8 @@ def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
     row = json.loads(out.read_text().splitlines()[0])
     assert row["case"] == "walk_sev1_seed0_ld20us" and row["frames"] == 24
     assert 1 <= row["processed"] <= 24 and row["refinement"] is None
+    assert 3 <= row["posed"] <= row["processed"] and 0 < row["ate_m"] < 1.0  # a walk's metres
+    assert "ate_true_m" not in row  # only with --with-true
     assert row["mapping_lag_s"] == 0.05  # the node's default
     assert row["status"] == "collecting" and row["final_s"] is None  # 24 frames: too few
     text = capsys.readouterr().out
@@ -88,5 +90,23 @@ def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
     assert live_main(["--mapping-lag", "-0.1"]) == 2
     assert live_main(["--mapping-lag", "3"]) == 2
     assert live_main(["--cases", "1", "--frames", "12", "--rate", "60", "--refine-frames", "0",
-                      "--mapping-lag", "0", "--json", str(out)]) == 0
-    assert json.loads(out.read_text().splitlines()[0])["mapping_lag_s"] == 0.0
+                      "--mapping-lag", "0", "--with-true", "--json", str(out)]) == 0
+    row = json.loads(out.read_text().splitlines()[0])
+    assert row["mapping_lag_s"] == 0.0
+    # the second run, the true line delay fixed: its own frames and ATE beside auto's
+    assert 3 <= row["posed_true"] <= row["processed_true"] <= 12 and row["ate_true_m"] > 0
+    assert "ATE with auto within 10 % of the true line delay's (both emulated live) on" \
+        in capsys.readouterr().out
+
+
+def test_the_live_emulation_counts_the_ate_near_the_true_line_delays():
+    """ATE with auto against the true line delay's: within 10 % counted, the ratio's
+    geometric mean over the rows with both, a row without an ATE a miss."""
+    from rsvo_ros.tools.live_line_delay import ate_near_true
+
+    rows = [{"ate_m": 0.105, "ate_true_m": 0.1}, {"ate_m": 0.2, "ate_true_m": 0.1},
+            {"ate_m": 0.05, "ate_true_m": 0.1}, {"ate_m": None, "ate_true_m": 0.1}]
+    line = ate_near_true(rows)
+    assert "on 2 of 4 rolling-shutter cases" in line
+    assert f"{(1.05 * 2.0 * 0.5) ** (1 / 3):.3f}x in geometric mean over 3" in line
+    assert "on 0 of 1" in ate_near_true([{"ate_m": None, "ate_true_m": None}])
