@@ -459,10 +459,18 @@ class GSStarts:
     Fits with ``lm.init_thresholds_px`` on all points and with ``ransac.init_threshold_px`` on
     three row bands. :meth:`result` collects them, fitting itself those no worker has started
     (rather than wait idle), also after :meth:`cancel`, which drops those not started (a
-    local search needs none, unless its best GS fit turns out worse than the tolerant one)."""
+    local search needs none, unless its best GS fit turns out worse than the tolerant one).
+
+    ``best_fit`` (no arguments, a GS fit's ``(R, t, mask, ...)``) is the estimator's best GS
+    fit, which it needs where the tolerant start leaves the points near the local search's
+    scale (on video nearly always). With ``speculate`` it is begun first, beside the caller's
+    tolerant fit, and :meth:`best` waits for it fitting extra starts meanwhile;
+    :meth:`drop_best` drops it where it is not needed after all. Without, :meth:`best` fits it
+    on the caller. The same fits either way: only where they run differs."""
 
     def __init__(self, corr: Correspondences, rows_from_ref: np.ndarray, ransac: RansacOptions,
-                 lm: LMOptions, seed: int, min_inliers: int) -> None:
+                 lm: LMOptions, seed: int, min_inliers: int,
+                 best_fit: Callable[[], tuple] | None = None, speculate: bool = False) -> None:
         jobs = [(np.ones(len(corr), bool), thr) for thr in lm.init_thresholds_px]
         height = max(float(np.ptp(rows_from_ref)), 1.0)
         edges = np.min(rows_from_ref) + height * np.array([0.0, 1 / 3, 2 / 3, 1.0 + 1e-9])
@@ -480,23 +488,50 @@ class GSStarts:
                 t) > 0 else None
 
         pool = _gs_pool()
+        self._best_fit = best_fit
+        self._best = pool.submit(best_fit) if speculate and best_fit is not None else None
         self._jobs = [(fit, mask, thr) for mask, thr in jobs]
         self._futures = [pool.submit(*job) for job in self._jobs]
+        self._fitted_here: dict[int, RSBatch | None] = {}
+
+    def _fit_one_here(self) -> bool:
+        """Fit the last start no worker has begun on the caller; False: none left."""
+        for i in reversed(range(len(self._futures))):
+            if i not in self._fitted_here and self._futures[i].cancel():
+                fit, mask, thr = self._jobs[i]
+                self._fitted_here[i] = fit(mask, thr)
+                return True
+        return False
+
+    def best(self) -> tuple:
+        """The best GS fit: the speculative one (fitting starts here while it runs, rather
+        than wait idle), or fitted here."""
+        if self._best_fit is None:
+            raise ValueError("GSStarts was made without a best fit")
+        if self._best is None or self._best.cancel():
+            return self._best_fit()
+        while not self._best.done() and self._fit_one_here():
+            pass
+        return self._best.result()
+
+    def drop_best(self) -> None:
+        if self._best is not None:
+            self._best.cancel()
 
     def result(self) -> list[RSBatch]:
         # a fit still waiting for a worker runs here (from the last, while the workers take
         # the first ones): the same fits, in the caller's time that waiting would have spent
-        done = {}
-        for i in reversed(range(len(self._futures))):
-            if self._futures[i].cancel():
-                fit, mask, thr = self._jobs[i]
-                done[i] = fit(mask, thr)
-        fits = (done[i] if i in done else f.result() for i, f in enumerate(self._futures))
+        while self._fit_one_here():
+            pass
+        fits = (self._fitted_here[i] if i in self._fitted_here else f.result()
+                for i, f in enumerate(self._futures))
         return [s for s in fits if s is not None]
 
     def cancel(self) -> None:
-        for f in self._futures:
-            f.cancel()
+        """Drop the extra starts no worker has begun (not the best fit)."""
+        for i, f in enumerate(self._futures):
+            if i not in self._fitted_here:
+                f.cancel()
 
 
 _GS_POOL: ThreadPoolExecutor | None = None

@@ -127,6 +127,88 @@ def test_gs_starts_dropped_by_a_local_search_are_fitted_when_asked_for(paper_sce
         assert np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
 
 
+def test_the_best_gs_fit_begun_early_is_the_same_fit(paper_scene):
+    """``GSStarts(best_fit, speculate=True)`` begins the best GS fit on the worker, first;
+    ``best`` gives that fit (the one the caller would have made) and the extra starts are the
+    same; without ``speculate`` the caller fits it; ``drop_best`` drops it."""
+    import threading
+    import time
+
+    from rsvo_ros.twoview.essential import estimate_gs_opencv
+    from rsvo_ros.twoview.estimator import GS_METHOD
+    from rsvo_ros.twoview.options import LMOptions
+    from rsvo_ros.twoview.search import GSStarts
+    from rsvo_ros.twoview.state import make_correspondences
+
+    pair = paper_scene.frame_pair(np.random.default_rng(1), level=1)
+    row_ref = pair.K[1, 2]
+    corr = make_correspondences(pair.pts_prev, pair.pts_curr, pair.K, pair.line_delay, row_ref,
+                                pair.pts_prev[:, 1], pair.pts_curr[:, 1])
+    rows = pair.pts_prev[:, 1] - row_ref
+    ransac = RansacOptions()
+    threads = []
+
+    def best_fit():
+        threads.append(threading.current_thread().name)
+        return estimate_gs_opencv(corr, ransac.threshold_px, ransac.confidence,
+                                  ransac.null_max_iterations, 0, GS_METHOD)
+
+    here = best_fit()
+    for speculate in (True, False):
+        threads.clear()
+        gs = GSStarts(corr, rows, ransac, LMOptions(), 0, 15, best_fit, speculate)
+        if speculate:  # a worker still busy (another test's fits) or not yet awake: wait
+            deadline = time.monotonic() + 10.0
+            while not (gs._best.running() or gs._best.done()) and time.monotonic() < deadline:
+                time.sleep(0.001)
+        R, t, mask = gs.best()[:3]
+        assert np.array_equal(R, here[0]) and np.array_equal(t, here[1])
+        assert np.array_equal(mask, here[2])
+        assert threads == (["rsvo_gs_start_0"] if speculate else [threading.current_thread().name])
+        assert len(gs.result()) == 4
+    dropped = GSStarts(corr, rows, ransac, LMOptions(), 0, 15, best_fit, True)
+    dropped.drop_best()
+    assert len(dropped.result()) == 4  # the extra starts are not dropped with it
+    with pytest.raises(ValueError, match="without a best fit"):
+        GSStarts(corr, rows, ransac, LMOptions(), 0, 15).best()
+
+
+def test_estimates_are_the_same_whether_the_best_fit_began_early(paper_scene):
+    """The estimator begins the best GS fit early where the last two estimates needed it (a
+    video's pairs); every estimate is the same to the bit either way, and the hint follows
+    the pairs: level 1 (no RS distortion) needs it, level 4 (strong) searches globally."""
+    import rsvo_ros.twoview.estimator as est
+
+    pairs = [paper_scene.frame_pair(np.random.default_rng(s), level=lv)
+             for s, lv in ((0, 1), (1, 1), (0, 4), (1, 4), (3, 1))]
+    hint = est._BEST_FIT_HINT.last_two
+    try:
+        runs = {}
+        for early in (True, False):
+            runs[early] = []
+            for pair in pairs:
+                est._BEST_FIT_HINT.last_two = (early, early)
+                res = estimate_relative_pose(pair.pts_prev, pair.pts_curr, pair.K,
+                                             pair.line_delay, seed=0)
+                runs[early].append((res, est._BEST_FIT_HINT.last_two[1]))
+    finally:
+        est._BEST_FIT_HINT.last_two = hint
+    assert [needed for _, needed in runs[True]] == [True, True, False, False, True]
+    for (a, needed_a), (b, needed_b) in zip(runs[True], runs[False], strict=True):
+        assert a.ok and b.ok and needed_a == needed_b
+        for key in ("R", "t", "w_prev", "v_prev", "w_curr", "v_curr", "inliers"):
+            assert np.array_equal(getattr(a, key), getattr(b, key)), key
+        assert a.iterations == b.iterations and a.cost == b.cost
+    fresh = est._BestFitHint()
+    assert fresh.expected  # a process starts expecting video
+    fresh.note(False)
+    assert not fresh.expected
+    fresh.note(True)
+    assert not fresh.expected  # one estimate alone does not decide
+    fresh.note(True)
+    assert fresh.expected
+
+
 def _rotation_only_reference(x_prev, x_curr, focal, draws, voters):
     """The rotation-only fit written out in numpy (Kabsch by SVD, medians): what the compiled
     kernel must give."""
