@@ -1,6 +1,6 @@
 """The live node's line-delay estimate on the line-delay table's bags, emulated in process.
 
-    python -m rsvo_ros.tools.live_line_delay [--rate 30] [--frames 210] [--with-true]
+    python -m rsvo_ros.tools.live_line_delay [--rate 30] [--frames 210] [--with-true] [--rerun]
         [--json OUT.jsonl]
 
 For each rolling-shutter case of :mod:`rsvo_ros.tools.line_delay_table` the sequence is
@@ -33,7 +33,9 @@ import statistics
 import sys
 import time
 
-from rsvo_ros.odometry.pipeline import OdometryPipeline, PipelineOptions
+import numpy as np
+
+from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions
 from rsvo_ros.odometry.window import MAX_MAPPING_LAG_S, NODE_MAPPING_LAG_S
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.line_delay_table import CASES
@@ -46,16 +48,21 @@ ATE_NEAR = 1.10  # issue 15: the ATE with auto within 10 % of the true line dela
 
 def run_case(motion: str, severity: float, seed: int, line_delay: float, frames: int,
              rate: float, refine_frames: int = 150, keep_dropped: bool = True,
-             mapping_lag_s: float = NODE_MAPPING_LAG_S, auto: bool = True) -> dict:  # fmt: skip
+             mapping_lag_s: float = NODE_MAPPING_LAG_S, auto: bool = True,
+             rerun: bool = False) -> dict:  # fmt: skip
     """One case as the node runs it; ``auto=False``: the true line delay given, fixed (the
-    node with ``line_delay`` set), where the line-delay keys stay None."""
+    node with ``line_delay`` set), where the line-delay keys stay None. ``rerun``: the node's
+    ``line_delay_rerun``: the frames before the first estimate processed again with it, their
+    new poses in the path (which the ATE is then of) and the published odometry as it was."""
     renderer = SequenceRenderer(SynthConfig(frames=frames, motion=motion, severity=severity,
                                             seed=seed, line_delay=line_delay))  # fmt: skip
     rendered = list(renderer)  # before the clock starts
     images = [(round(f.stamp * 1e9), f.image) for f in rendered]
     truth = {stamp: f.pose() for (stamp, _), f in zip(images, rendered, strict=True)}
-    options = PipelineOptions(line_delay_auto=auto, line_delay_rerun_max_frames=0,
+    options = PipelineOptions(line_delay_auto=auto,
                               line_delay_auto_refine_frames=refine_frames if auto else 0)
+    if not (auto and rerun):  # as the node without line_delay_rerun
+        options.line_delay_rerun_max_frames = 0
     options.window.async_mapping = True
     options.window.mapping_lag_s = mapping_lag_s
     pipe = OdometryPipeline(renderer.K, None, 0.0 if auto else line_delay, options)
@@ -71,9 +78,7 @@ def run_case(motion: str, severity: float, seed: int, line_delay: float, frames:
         if keep_dropped and pipe.wants_unprocessed_frames:  # as the node: for the refinement
             for j in range(k, newest):
                 pipe.keep_unprocessed(*images[j])
-        result = pipe.process(*images[newest])
-        if result.T_world_cam is not None:
-            posed[images[newest][0]] = result.T_world_cam
+        keep_pose(posed, pipe.process(*images[newest]))
         processed, k = processed + 1, newest + 1
     at_end = pipe.line_delay_estimate.line_delay_s
     pipe.close()  # a refinement still running is waited for
@@ -89,7 +94,7 @@ def run_case(motion: str, severity: float, seed: int, line_delay: float, frames:
     calibrator = ref["first_line_delay_s"] if "first_line_delay_s" in ref else at_end
     return {"case": case_name(motion, severity, seed, line_delay),
             "line_delay_true_s": line_delay, "frames": frames, "processed": processed,
-            "posed": len(posed), "ate_m": ate,
+            "posed": len(posed), "ate_m": ate, "reruns": len(pipe.line_delay_reruns),
             "mapping_lag_s": pipe.window.options.mapping_lag_s,  # the one in use
             "running_s": running, "calibrator_s": calibrator,
             "calibrator_windows": ref.get("first_windows"),
@@ -101,6 +106,17 @@ def run_case(motion: str, severity: float, seed: int, line_delay: float, frames:
             "start_in_use_after_s": None if ref.get("first_in_use_after_ms") is None
             else ref["first_in_use_after_ms"] / 1e3,
             "refinement_frames_unprocessed": ref.get("frames_unprocessed")}
+
+
+def keep_pose(path: dict[int, np.ndarray], result: FrameResult) -> None:
+    """As the node's path: the frame's pose by its stamp, and where earlier frames were
+    processed again (``line_delay_rerun``) their new poses in place of those published (a
+    frame never published, e.g. dropped, stays out)."""
+    if result.T_world_cam is not None:
+        path[result.stamp_ns] = result.T_world_cam
+    for again in result.revised or []:
+        if again.T_world_cam is not None and again.stamp_ns in path:
+            path[again.stamp_ns] = again.T_world_cam
 
 
 def case_name(motion: str, severity: float, seed: int, line_delay: float) -> str:
@@ -136,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
                         f"default; 0: each window BA picked up when it finishes)")
     p.add_argument("--cases", type=int, default=None, metavar="N",
                    help="only the first N rolling-shutter cases")
+    p.add_argument("--rerun", action="store_true",
+                   help="as the node's line_delay_rerun: the frames before the first estimate "
+                        "processed again with it (the ATE is the path's, with their new poses)")
     p.add_argument("--with-true", action="store_true",
                    help="also run each case with the true line delay fixed and compare the "
                         "ATE (twice the time)")
@@ -154,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     for group, motion, severity, seed, ld in cases:
         row = {"group": group, **run_case(motion, severity, seed, ld, args.frames, args.rate,
                                           args.refine_frames, not args.no_keep_dropped,
-                                          args.mapping_lag)}  # fmt: skip
+                                          args.mapping_lag, rerun=args.rerun)}  # fmt: skip
         if args.with_true:
             fixed = run_case(motion, severity, seed, ld, args.frames, args.rate,
                              mapping_lag_s=args.mapping_lag, auto=False)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import matplotlib.image as mpimg
+import numpy as np
 
 from rsvo_ros.tools.line_delay_table import plot, summary, table, within
 
@@ -97,6 +98,28 @@ def test_the_live_emulation_feeds_the_cases_as_the_node_runs(tmp_path, capsys):
     assert 3 <= row["posed_true"] <= row["processed_true"] <= 12 and row["ate_true_m"] > 0
     assert "ATE with auto within 10 % of the true line delay's (both emulated live) on" \
         in capsys.readouterr().out
+
+
+def test_the_live_emulation_keeps_the_path_as_the_node_does():
+    """``keep_pose``: each posed frame by its stamp; frames processed again with the first
+    line-delay estimate (``line_delay_rerun``) replace their published poses; a re-run frame
+    that was never published (dropped) and a skipped frame stay out."""
+    from rsvo_ros.odometry.pipeline import FrameResult
+    from rsvo_ros.tools.live_line_delay import keep_pose
+
+    def frame(stamp, x, revised=None):
+        T = None if x is None else np.eye(4)
+        if T is not None:
+            T[0, 3] = x
+        return FrameResult(0, stamp, "posed", "", T, np.eye(6), revised=revised)
+
+    path = {}
+    keep_pose(path, frame(1, 0.0))
+    keep_pose(path, frame(3, 1.0))
+    keep_pose(path, frame(4, None))  # skipped
+    keep_pose(path, frame(5, 2.0, revised=[frame(1, 0.5), frame(2, 0.7), frame(3, 1.5)]))
+    assert sorted(path) == [1, 3, 5]
+    assert [path[s][0, 3] for s in (1, 3, 5)] == [0.5, 1.5, 2.0]
 
 
 def test_the_live_emulation_counts_the_ate_near_the_true_line_delays():
