@@ -122,8 +122,9 @@ PARAMETERS = {
         "continuous. Takes a second or two on that frame, during "
         "which the camera's frames are dropped (the newest is kept), so false (default) for a "
         "live camera: a vehicle's odometry does not survive that gap (emulated, ATE 5-40x "
-        "worse on vehicles, 1.6x over 33 bags; README, line-delay section); rsvo_replay does it unless --no-line-delay-rerun (the frames before the "
-        "first estimate otherwise keep the map and scale the starting readout gave them).")),
+        "worse on vehicles, 1.6x over 33 bags; README, line-delay section); rsvo_replay does "
+        "it unless --no-line-delay-rerun (the frames before the first estimate otherwise keep "
+        "the map and scale the starting readout gave them).")),
     "line_delay_refine_frames": (150, _int(
         "line_delay_mode auto: after this many frames, run them again (the dropped ones too) "
         "at the calibrator's estimate over all its windows, in the background with the map's "
