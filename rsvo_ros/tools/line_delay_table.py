@@ -67,9 +67,14 @@ CASES = [  # (group, motion, severity, seed, line delay s/row)
 ]
 
 
+def case_name(motion: str, severity: float, seed: int, line_delay: float) -> str:
+    """A case's name (its bag's directory; the rows' ``case``)."""
+    return f"{motion}_sev{severity:g}_seed{seed}_ld{line_delay * 1e6:g}us"
+
+
 def run_case(out: Path, motion: str, severity: float, seed: int, line_delay: float,
              frames: int) -> dict:  # fmt: skip
-    name = f"{motion}_sev{severity:g}_seed{seed}_ld{line_delay * 1e6:g}us"
+    name = case_name(motion, severity, seed, line_delay)
     bag = out / name
     if not (bag / "metadata.yaml").exists():
         write_bag(bag, SynthConfig(frames=frames, motion=motion, severity=severity, seed=seed,

@@ -40,12 +40,11 @@ import numpy as np
 from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions
 from rsvo_ros.odometry.window import MAX_MAPPING_LAG_S, NODE_MAPPING_LAG_S
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
-from rsvo_ros.tools.line_delay_table import CASES
+from rsvo_ros.tools.line_delay_table import CASES, case_name, near
 from rsvo_ros.tools.line_delay_table import within_target as within
 from rsvo_ros.tools.replay import accuracy
 
 MIN_POSES_FOR_ATE = 3  # a Sim(3) alignment of fewer poses says nothing
-ATE_NEAR = 1.10  # issue 15: the ATE with auto within 10 % of the true line delay's
 
 
 def run_case(motion: str, severity: float, seed: int, line_delay: float, frames: int,
@@ -121,20 +120,16 @@ def keep_pose(path: dict[int, np.ndarray], result: FrameResult) -> None:
             path[again.stamp_ns] = again.T_world_cam
 
 
-def case_name(motion: str, severity: float, seed: int, line_delay: float) -> str:
-    return f"{motion}_sev{severity:g}_seed{seed}_ld{line_delay * 1e6:g}us"
-
-
 def ate_near_true(rows: list[dict]) -> str:
     """The count of rows whose ATE with ``auto`` is within 10 % of the true line delay's,
     and the ratio's geometric mean (rows without both ATEs are counted as misses and left
     out of the mean)."""
     both = [r for r in rows if r.get("ate_m") is not None and r.get("ate_true_m")]
-    near = sum(r["ate_m"] <= ATE_NEAR * r["ate_true_m"] for r in both)
+    within_10 = near("ate_m", both)
     ratios = [r["ate_m"] / r["ate_true_m"] for r in both]
     gmean = statistics.geometric_mean(ratios) if ratios and min(ratios) > 0 else float("nan")
     return (f"live_line_delay: ATE with auto within 10 % of the true line delay's (both "
-            f"emulated live) on {near} of {len(rows)} rolling-shutter cases, the ratio "
+            f"emulated live) on {within_10} of {len(rows)} rolling-shutter cases, the ratio "
             f"{gmean:.3f}x in geometric mean over {len(both)}")
 
 
