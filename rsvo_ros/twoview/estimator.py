@@ -265,8 +265,9 @@ def estimate_relative_pose(
     if more_starts is not None and (start_scale is None or start_scale < lm.local_scale_px
                                     or mask.sum() < min_inliers):  # fmt: skip
         more_starts.cancel()
+    # the tolerant start near the local search's scale: the best GS fit decides (below)
+    needs_best = start_scale is not None and start_scale < LOCAL_CHECK_FACTOR * lm.local_scale_px
     if more_starts is not None and start_scale is not None:
-        needs_best = start_scale < LOCAL_CHECK_FACTOR * lm.local_scale_px
         _BEST_FIT_HINT.note(needs_best)
         if not needs_best:
             more_starts.drop_best()
@@ -306,7 +307,7 @@ def estimate_relative_pose(
         # KLT tracks: 1.6-2.4 against 0.72-0.74 px), and the global search then found RS fits
         # 4-5.4 deg off
         null_start = start
-        if start_scale < LOCAL_CHECK_FACTOR * lm.local_scale_px:
+        if needs_best:
             R_g, t_g, mask_g, _, _ = more_starts.best()
             if mask_g.sum() >= min_inliers and np.linalg.norm(t_g) > 0:
                 best = RSBatch.from_pose(R_g, t_g)
