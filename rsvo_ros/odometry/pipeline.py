@@ -819,6 +819,13 @@ class OdometryPipeline:
         if self.window.initialising and not self._window_was_initialising:
             # the map was lost and starts over: the chain goes on from here
             speed = 0.0 if state is None else float(np.linalg.norm(state.v))
+            if out.stall_restart and state is not None:
+                # after a stall: from the predicted pose, with a usual frame interval's step
+                T = self.T_odom_world @ self.window.row0_pose(state)
+                if np.isfinite(T).all():
+                    self.T_world_cam = T
+                cadence = (self.frame_interval_ns or 0.0) * 1e-9
+                interval = min(interval or 0.0, cadence) if cadence > 0 else interval
             self.chain.restart(self.T_world_cam, speed * (interval or 0.0))
         self._window_was_initialising = self.window.initialising
         velocity = None

@@ -64,6 +64,7 @@ MAX_MAPPING_LAG_S = 2.0  # WindowOptions.mapping_lag_s: longer holds the map bac
 # mean, and the pick-up waited for the mapping thread at 2-3 keyframes of 300 frames (5-10 ms;
 # README, "A fixed mapping lag")
 NODE_MAPPING_LAG_S = 0.05
+STALL_INTERVALS = 4.0  # WindowOptions.stall_intervals' default (the tracker's prediction's limit)
 
 
 @dataclass
@@ -120,6 +121,23 @@ class WindowOptions:
     # forth around a 3 cm step (docs/notebook.md, "Tracking's position prior")
     prior_p_step: float = 1.0
     lost_frames_to_reset: int = 5  # held frames in a row before the map starts over
+    # A stall: more than this many of the last frame intervals without a frame (a camera or
+    # a node that stalled; 0: no such check). A car's image moves past KLT's reach in it, and
+    # on a repeated pattern the tracks lock onto a copy: consistent, wrong by its period (a
+    # 0.3-0.55 s stall in a synthetic car: a step 25-60 % short, 25-50 deg off, the whole
+    # trajectory's ATE 5-20x worse). After a stall a pose tracked against the map more than
+    # reloc_max_rotation_deg off the constant-velocity prediction with fewer than
+    # stall_min_inlier_share of the usual inliers is not taken (the aliased ones had 0.25-0.36,
+    # walks' true ones 0.56-1.0), nor a pair recovery (its tracks cross the stall) more than
+    # reloc_max_rotation_deg off it; without either the map starts over at once at the
+    # prediction, with the speed from before, and re-finds the lost map only within
+    # reloc_max_jump_steps usual steps of where it starts (README, "A stalled camera")
+    stall_intervals: float = STALL_INTERVALS
+    stall_min_inlier_share: float = 0.5
+    # ... and a stall of at most this long (s): over a longer one the constant-velocity
+    # prediction says little (1-3 s: walks 1.9x worse from it, cars 0.56x), and the frame is
+    # recovered as any other
+    stall_max_s: float = 1.0
     pair_prior_rotation_rad: float = 0.02  # the pair estimator's rotation prior (see __init__)
     pair_model: str = "rs"  # RS model: how pairs start the map ("rs" or "gs_cv", see _pair)
     # while the map initialises, pose the frames with the pairwise chain and start the map in
@@ -194,6 +212,21 @@ class WindowOptions:
     reloc_frames_after_recovery: int = 5
 
 
+def check_stall(intervals: float, min_inlier_share: float = 0.5, max_s: float = 1.0,
+                name: str = "WindowOptions.stall_intervals") -> None:
+    """``ValueError`` unless ``intervals`` is a :attr:`WindowOptions.stall_intervals` (0: off,
+    else more than one frame interval, finite), ``min_inlier_share`` in [0, 1] and ``max_s``
+    (``stall_max_s``) positive and finite; the message names the setting ``name``."""
+    if not (intervals == 0 or 1 < intervals < np.inf):  # also NaN
+        raise ValueError(f"{name} must be 0 (off) or more than 1 frame interval, got "
+                         f"{intervals}")
+    if not 0 <= min_inlier_share <= 1:
+        raise ValueError(f"WindowOptions.stall_min_inlier_share must be in [0, 1], got "
+                         f"{min_inlier_share}")
+    if not 0 < max_s < np.inf:
+        raise ValueError(f"WindowOptions.stall_max_s must be > 0 s and finite, got {max_s}")
+
+
 @dataclass
 class PairMotion:
     """A pair estimate as the window uses it: the motion of the reference-row cameras
@@ -233,6 +266,7 @@ class WindowResult:
     # the frame was posed against the memory of landmarks: its state is in the world of the
     # maps that wrote them (:meth:`WindowOdometry.in_trusted_map`), not the current map's
     refound: bool = False
+    stall_restart: bool = False  # a new map started at the prediction after a stall
     # track ids of the map points this frame was posed with, and of those it rejected (for
     # drawing; None when the frame was not posed against the map)
     inlier_ids: np.ndarray | None = None
@@ -251,6 +285,8 @@ class WindowOdometry:
         self.row_ref = float(self.K[1, 2])
         self.line_delay = float(line_delay)
         self.options = options or WindowOptions()
+        o = self.options
+        check_stall(o.stall_intervals, o.stall_min_inlier_share, o.stall_max_s)
         if not self.options.prior_p_step >= 0:  # also NaN
             raise ValueError(f"WindowOptions.prior_p_step must be >= 0 (0: no position prior), "
                              f"got {self.options.prior_p_step}")
@@ -282,6 +318,9 @@ class WindowOdometry:
         # scale through the speed, and the last frames before a loss may be off
         self._speeds: deque = deque(maxlen=30)
         self._inliers: deque = deque(maxlen=30)  # inliers of the last tracked frames
+        self._seen: deque = deque(maxlen=16)  # the stamps of the last frames, any status
+        self._stalled_map = False  # the map was started after a stall (until it re-finds)
+        self._stall: float | None = None  # this frame came after a stall of this many s
         self._err_medians: deque = deque(maxlen=15)  # their median reprojection errors (px)
         self._err_median = np.nan  # the last motion-only refinement's
         self._weak = False  # the last frame's tracking was weak (async: map synchronously)
@@ -438,6 +477,8 @@ class WindowOdometry:
                 T = memory_from_hint @ hint
                 if np.isfinite(T).all():
                     self._hints_in_memory.append((stamp_ns, T))
+        self._stall = self._stall_s(stamp_ns)
+        self._seen.append(stamp_ns)
         if self._last is None and self._ref is None:
             return self._start(stamp_ns, obs)
         if self._ref is not None:
@@ -675,6 +716,8 @@ class WindowOdometry:
             np.concatenate([w_cv, v_cv, pred.p]), sv, pp2)  # fmt: skip
         if state is None or inl.sum() < max(o.min_inliers, o.min_inlier_ratio * len(ia)):
             return None
+        if self._stall is not None and self._aliased(pred, state, int(inl.sum())):
+            return None
         result = WindowResult("posed", "", state, inliers=int(inl.sum()), tracked=len(ia),
                               hessian=H, sigma2=sigma2, inlier_ids=obs.ids[ib][inl],
                               outlier_ids=obs.ids[ib][~inl])  # fmt: skip
@@ -772,23 +815,27 @@ class WindowOdometry:
         if self._mapper is not None:
             self._mapper.wait_idle()  # the pair recovery and a map reset change the map
             self._pick_up_mapping()
+        predicted = None
         if self._last is not None:
-            found = self._relocalize(stamp_ns, obs, extrapolate(self._last, self._before,
-                                                                stamp_ns))  # fmt: skip
+            predicted = extrapolate(self._last, self._before, stamp_ns)
+            found = self._relocalize(stamp_ns, obs, predicted)
             if found is not None:
                 return found
+        stall = self._stall
         last_kf = self.map.keyframes[-1] if self.map.keyframes else None
         # a map left with fewer points than tracking needs is not recovered into (its keyframes
         # would be placed by the last speed alone, and it never comes back): it starts over
         dead = len(self.map.landmarks) < self.options.min_landmarks
         late_moved: list[tuple[FrameState, FrameState]] = []
         if last_kf is not None and not dead:
-            found = self._pair_recovery(last_kf, stamp_ns, obs)
+            # after a stall the pair's tracks cross it: its rotation is checked
+            check = predicted if stall is not None else None
+            found = self._pair_recovery(last_kf, stamp_ns, obs, check)
             late = self._late_keyframe(last_kf) if found is None else None
             if late is not None:
                 kf, moved = late
                 late_moved = [moved]  # that (published) frame moved first
-                found = self._pair_recovery(kf, stamp_ns, obs)
+                found = self._pair_recovery(kf, stamp_ns, obs, check)
                 if found is not None:
                     found.reason = LATE_RECOVERY_REASON
                     found.ba_moved = late_moved + found.ba_moved
@@ -796,10 +843,12 @@ class WindowOdometry:
                 return found
         self._lost += 1
         held = self._last.copy()
-        if self._lost >= self.options.lost_frames_to_reset or dead:
+        if self._lost >= self.options.lost_frames_to_reset or dead or stall is not None:
             speed, usual = float(np.linalg.norm(held.v)), self._usual_speed()
             if usual is not None and speed > 2.0 * usual:
                 held.v = held.v * (usual / speed)  # a diverging last pose must not set it
+            if stall is not None:
+                held = extrapolate(held, self._before, stamp_ns)
             self._origin = held
             self.map = self._new_map()
             self._make_provisional(stamp_ns)
@@ -810,14 +859,43 @@ class WindowOdometry:
             self._refind_frames = 0
             started = self._start(stamp_ns, obs)
             started.reason = "lost: too few map points and no pair pose; a new map starts"
+            self._stalled_map = stall is not None
+            if stall is not None:
+                started.reason = (f"lost after {stall:.2f} s without a frame: a new map starts "
+                                  f"at the constant-velocity prediction")
+                started.stall_restart = True
             return started
         return WindowResult("held", "lost: too few map points and no pair pose", held,
                             ba_moved=late_moved)  # fmt: skip
 
-    def _pair_recovery(self, kf: KeyFrame, stamp_ns: int,
-                       obs: Observations) -> WindowResult | None:  # fmt: skip
+    def _stall_s(self, stamp_ns: int) -> float | None:
+        """Seconds since the last frame (posed or not) where that is more than
+        ``stall_intervals`` of the stream's cadence (the median interval of the last frames)
+        and at most ``stall_max_s``: a stalled camera or node, whose tracks across it may have
+        locked onto a repeated pattern; else None."""
+        if self.options.stall_intervals <= 0 or len(self._seen) < 2:
+            return None
+        cadence = float(np.median(np.diff(np.asarray(self._seen, np.int64))))
+        gap = stamp_ns - self._seen[-1]
+        if not (cadence > 0 and self.options.stall_intervals * cadence < gap
+                <= self.options.stall_max_s * 1e9):
+            return None
+        return gap * 1e-9
+
+    def _aliased(self, predicted: FrameState, state: FrameState, inliers: int) -> bool:
+        """Whether a pose tracked across a stall is a repeated pattern's: more than
+        ``reloc_max_rotation_deg`` off the constant-velocity prediction and supported by
+        fewer than ``stall_min_inlier_share`` of the usual inliers."""
+        o = self.options
+        turn = np.degrees(np.linalg.norm(so3_log(predicted.R.T @ state.R)))
+        usual = float(np.median(self._inliers)) if self._inliers else 0.0
+        return bool(turn > o.reloc_max_rotation_deg and inliers < o.stall_min_inlier_share * usual)
+
+    def _pair_recovery(self, kf: KeyFrame, stamp_ns: int, obs: Observations,
+                       predicted: FrameState | None = None) -> WindowResult | None:  # fmt: skip
         """The frame posed by the pair estimator from keyframe ``kf``, scaled by the landmarks
-        they share, and made a keyframe (mapped inline); None without a pair pose."""
+        they share, and made a keyframe (mapped inline); None without a pair pose, or with
+        one more than ``reloc_max_rotation_deg`` off ``predicted`` (if given)."""
         dt = (stamp_ns - kf.state.stamp_ns) * 1e-9
         res, ia, ib = self._pair(kf.obs, obs, dt, self.seed + self._next_kf)
         if res is None:
@@ -828,6 +906,9 @@ class WindowOdometry:
         if scale is None:
             return None
         state, _, vel_cur = self._states_from_pair(res, kf.state, stamp_ns, scale)
+        if predicted is not None and not np.degrees(np.linalg.norm(so3_log(
+                predicted.R.T @ state.R))) <= self.options.reloc_max_rotation_deg:
+            return None
         new_kf = self._new_keyframe(state, obs, vel_cur)
         before = state.copy()
         # the scale is a guess: the BA may refine the points the memory has (the tracked
@@ -1009,6 +1090,13 @@ class WindowOdometry:
         if not turn <= o.reloc_max_rotation_deg:
             return None
         usual = self._usual_speed()
+        if self._stalled_map and usual and len(self._seen) >= 2:
+            # a map started after a stall: the lost map's memory can alias as the tracks did
+            # (a car re-found 19 steps back, where the stall began), so within the usual steps
+            # of the prediction too
+            cadence = float(np.median(np.diff(np.asarray(self._seen, np.int64)))) * 1e-9
+            if np.linalg.norm(found.p - predicted.p) > o.reloc_max_jump_steps * usual * cadence:
+                return None
         if not self._provisional(stamp_ns) and usual and self._last is not None:
             # a trusted map (not one rebuilt after a loss) moves the frame by about a step
             # (checked before the guided matching, which keeps the pose: a rejected re-finding
@@ -1048,6 +1136,7 @@ class WindowOdometry:
         self._provisional_until = None
         self._refind_frames = 0
         self._ref = self._origin = None
+        self._stalled_map = False
         self._hints.clear()
         return WindowResult("posed", f"{REFOUND_REASON} ({int(inl.sum())} points)", state,
                             inliers=int(inl.sum()), tracked=len(found.obs_idx), keyframe=True,

@@ -371,6 +371,7 @@ class RsvoNode(Node):
             float(self.p["uncertain_rotation_deg"]), "parameter uncertain_rotation_deg")
         opts.window.async_mapping = bool(self.p["async_mapping"])
         opts.window.mapping_lag_s = float(self.p["mapping_lag_s"])
+        opts.window.stall_intervals = float(self.p["stall_frames"])
         if not self.p["refind_map"]:
             opts.window.reloc_min_inliers = 0
         opts.window.map.prior_acc_rad_s2 = float(self.p["angular_acceleration_std"])

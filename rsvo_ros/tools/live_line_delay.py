@@ -38,7 +38,12 @@ import time
 import numpy as np
 
 from rsvo_ros.odometry.pipeline import FrameResult, OdometryPipeline, PipelineOptions
-from rsvo_ros.odometry.window import MAX_MAPPING_LAG_S, NODE_MAPPING_LAG_S
+from rsvo_ros.odometry.window import (
+    MAX_MAPPING_LAG_S,
+    NODE_MAPPING_LAG_S,
+    STALL_INTERVALS,
+    check_stall,
+)
 from rsvo_ros.sim.synth import SequenceRenderer, SynthConfig
 from rsvo_ros.tools.line_delay_table import CASES, case_name, near
 from rsvo_ros.tools.line_delay_table import within_target as within
@@ -50,7 +55,7 @@ MIN_POSES_FOR_ATE = 3  # a Sim(3) alignment of fewer poses says nothing
 def run_case(motion: str, severity: float, seed: int, line_delay: float, frames: int,
              rate: float, refine_frames: int = 150, keep_dropped: bool = True,
              mapping_lag_s: float = NODE_MAPPING_LAG_S, auto: bool = True,
-             rerun: bool = False) -> dict:  # fmt: skip
+             rerun: bool = False, stall_intervals: float = STALL_INTERVALS) -> dict:  # fmt: skip
     """One case as the node runs it; ``auto=False``: the true line delay given, fixed (the
     node with ``line_delay`` set), where the line-delay keys stay None. ``rerun``: the node's
     ``line_delay_rerun``: the frames before the first estimate processed again with it, their
@@ -66,6 +71,7 @@ def run_case(motion: str, severity: float, seed: int, line_delay: float, frames:
         options.line_delay_rerun_max_frames = 0
     options.window.async_mapping = True
     options.window.mapping_lag_s = mapping_lag_s
+    options.window.stall_intervals = stall_intervals
     pipe = OdometryPipeline(renderer.K, None, 0.0 if auto else line_delay, options)
     t0, k, processed, posed = time.perf_counter(), 0, 0, {}
     while k < len(images):
@@ -152,6 +158,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rerun", action="store_true",
                    help="as the node's line_delay_rerun: the frames before the first estimate "
                         "processed again with it (the ATE is the path's, with their new poses)")
+    p.add_argument("--stall-frames", type=float, default=STALL_INTERVALS, metavar="N",
+                   help=f"WindowOptions.stall_intervals, the node's stall_frames "
+                        f"({STALL_INTERVALS:g}; 0: no stall check, as before the fiftieth "
+                        f"session)")
     p.add_argument("--with-true", action="store_true",
                    help="also run each case with the true line delay fixed and compare the "
                         "ATE (twice the time)")
@@ -165,15 +175,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"live_line_delay: --mapping-lag must be in [0, {MAX_MAPPING_LAG_S:g}] s, got "
               f"{args.mapping_lag:g}", file=sys.stderr)
         return 2
+    try:
+        check_stall(args.stall_frames, name="--stall-frames")
+    except ValueError as exc:
+        print(f"live_line_delay: {exc}", file=sys.stderr)
+        return 2
     cases = [c for c in CASES if c[4] > 0][:args.cases]
     rows = []
     for group, motion, severity, seed, ld in cases:
         row = {"group": group, **run_case(motion, severity, seed, ld, args.frames, args.rate,
                                           args.refine_frames, not args.no_keep_dropped,
-                                          args.mapping_lag, rerun=args.rerun)}  # fmt: skip
+                                          args.mapping_lag, rerun=args.rerun,
+                                          stall_intervals=args.stall_frames)}  # fmt: skip
         if args.with_true:
             fixed = run_case(motion, severity, seed, ld, args.frames, args.rate,
-                             mapping_lag_s=args.mapping_lag, auto=False)
+                             mapping_lag_s=args.mapping_lag, auto=False,
+                             stall_intervals=args.stall_frames)
             row.update(ate_true_m=fixed["ate_m"], posed_true=fixed["posed"],
                        processed_true=fixed["processed"])
         rows.append(row)

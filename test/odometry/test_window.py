@@ -973,3 +973,86 @@ def test_a_failing_window_ba_on_the_mapping_thread_is_raised_to_tracking_once(la
         wo.close()
     assert len(failed) == 1 and len(raised) == 1, (failed, raised)
     assert len([k for k in picked if k > raised[0]]) >= 2  # mapping goes on after it
+
+
+def _stalled_vehicle(stall_intervals: float, gap: tuple[int, int] | None):
+    """A rendered car (100 us/row) with frames ``gap = (first, count)`` never delivered (a
+    stalled camera), through the pipeline with ``WindowOptions.stall_intervals``: the frames
+    delivered and their results."""
+    cfg = SynthConfig(frames=75, motion="vehicle", severity=1.0, width=640, height=360, seed=200)
+    renderer = SequenceRenderer(cfg)
+    frames = [f for f in renderer if gap is None or not gap[0] <= f.index < sum(gap)]
+    options = PipelineOptions()
+    options.window.stall_intervals = stall_intervals
+    pipe = OdometryPipeline(renderer.K, None, cfg.tau, options)
+    results = [pipe.process(round(f.stamp * 1e9), f.image) for f in frames]
+    pipe.close()
+    return frames, results
+
+
+def _ate(frames, results) -> float:
+    truth = {round(f.stamp * 1e9): f.pose() for f in frames}
+    est = {r.stamp_ns: r.T_world_cam for r in results if r.T_world_cam is not None}
+    return accuracy({s: truth[s] for s in est}, est)["ate_m"]["rmse"]
+
+
+def test_a_car_after_a_stalled_camera_starts_a_new_map_at_the_prediction():
+    """0.43 s without a frame in a car: its image moves past KLT's reach and the tracks lock
+    onto a copy of the corridor's repeated texture; the pose they give is wrong (a short,
+    turned step, the trajectory 12x worse). The stall is seen, that pose is not taken and the
+    map starts over at the constant-velocity prediction, with the speed from before."""
+    frames, results = _stalled_vehicle(4.0, (40, 12))
+    k = next(i for i, f in enumerate(frames) if f.index == 52)  # the first after the stall
+    assert "s without a frame" in results[k].reason, results[k].reason
+    assert all(r.T_world_cam is not None and np.isfinite(r.T_world_cam).all()
+               for r in results)  # fmt: skip
+
+    def step(i):
+        return np.linalg.norm(results[i].T_world_cam[:3, 3] - results[i - 1].T_world_cam[:3, 3]) \
+            / np.linalg.norm(frames[i].pose()[:3, 3] - frames[i - 1].pose()[:3, 3])
+
+    scale = np.median([step(i) for i in range(k - 6, k)])  # the map's scale before it
+    assert abs(step(k) / scale - 1.0) < 0.25  # the step across the stall: 0.94 (0.73 off)
+    assert any(r.status == "posed" for r in results[k + 1:k + 8])  # the new map goes on
+    off_frames, off_results = _stalled_vehicle(0.0, (40, 12))  # the check off: as before
+    off_k = next(i for i, f in enumerate(off_frames) if f.index == 52)
+    assert off_results[off_k].status == "posed"  # the aliased pose taken
+    assert _ate(frames, results) < 0.25 * _ate(off_frames, off_results)  # 0.20 against 2.48 m
+
+
+def test_a_pause_longer_than_stall_max_s_is_not_a_stall():
+    """Over a pause of more than stall_max_s the prediction says little: the frame after it
+    is recovered as before the check (the same poses as with the check off)."""
+    def run(stall_intervals):
+        cfg = SynthConfig(frames=90, motion="vehicle", severity=1.0, width=640, height=360,
+                          seed=200)
+        renderer = SequenceRenderer(cfg)
+        options = PipelineOptions()
+        options.window.stall_intervals, options.window.stall_max_s = stall_intervals, 0.3
+        pipe = OdometryPipeline(renderer.K, None, cfg.tau, options)
+        out = [pipe.process(round(f.stamp * 1e9), f.image) for f in renderer
+               if not 40 <= f.index < 52]  # 0.43 s
+        pipe.close()
+        return out
+
+    on, off = run(4.0), run(0.0)
+    assert not any("without a frame" in r.reason for r in on)
+    for a, b in zip(on, off, strict=True):
+        assert a.status == b.status and np.array_equal(a.T_world_cam, b.T_world_cam)
+
+
+def test_without_a_stall_the_stall_check_changes_nothing():
+    on = _stalled_vehicle(4.0, None)[1][:45]
+    off = _stalled_vehicle(0.0, None)[1][:45]
+    for a, b in zip(on, off, strict=True):
+        assert a.status == b.status and np.array_equal(a.T_world_cam, b.T_world_cam)
+
+
+@pytest.mark.parametrize("bad", [dict(stall_intervals=-1.0), dict(stall_intervals=1.0),
+                                 dict(stall_intervals=float("nan")),
+                                 dict(stall_intervals=float("inf")),
+                                 dict(stall_min_inlier_share=1.5),
+                                 dict(stall_max_s=0.0)])
+def test_a_bad_stall_setting_is_refused(bad):
+    with pytest.raises(ValueError, match="WindowOptions.stall_.* must be"):
+        WindowOdometry(np.diag([500.0, 500.0, 1.0]), 0.0, WindowOptions(**bad))

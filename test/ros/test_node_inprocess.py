@@ -915,6 +915,7 @@ def test_every_invalid_parameter_is_refused_by_name(tmp_path):
              (["tracking_decimation:=0"], "tracking_decimation"),
              (["tracking_decimation:=5"], "tracking_decimation"),
              (["uncertain_rotation_deg:=-0.5"], "uncertain_rotation_deg"),
+             (["stall_frames:=0.5"], "parameter stall_frames must be 0 (off) or more than 1"),
              (["line_delay:=-1.0"], "line_delay"),
              (["base_to_camera:=[0.0, 0.0]"], "base_to_camera"),
              (["line_delay_mode:=auto", "model:=gs"], "line_delay_mode"),
