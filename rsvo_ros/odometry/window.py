@@ -124,8 +124,8 @@ class WindowOptions:
     # A stall: more than this many of the last frame intervals without a frame (a camera or
     # a node that stalled; 0: no such check). A car's image moves past KLT's reach in it, and
     # on a repeated pattern the tracks lock onto a copy: consistent, wrong by its period (a
-    # 0.3-0.55 s stall in a synthetic car: a step 25-60 % short, 25-50 deg off, the whole
-    # trajectory's ATE 5-20x worse). After a stall a pose tracked against the map more than
+    # 0.3-0.55 s stall in a synthetic car: a step 40-55 % short, 25-50 deg off, the whole
+    # trajectory's ATE 4-20x worse). After a stall a pose tracked against the map more than
     # reloc_max_rotation_deg off the constant-velocity prediction with fewer than
     # stall_min_inlier_share of the usual inliers is not taken (the aliased ones had 0.25-0.36,
     # walks' true ones 0.56-1.0), nor a pair recovery (its tracks cross the stall) more than
