@@ -227,6 +227,11 @@ def check_stall(intervals: float, min_inlier_share: float = 0.5, max_s: float = 
         raise ValueError(f"WindowOptions.stall_max_s must be > 0 s and finite, got {max_s}")
 
 
+def _turn_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """The rotation (deg) from ``R_a`` to ``R_b``."""
+    return float(np.degrees(np.linalg.norm(so3_log(R_a.T @ R_b))))
+
+
 @dataclass
 class PairMotion:
     """A pair estimate as the window uses it: the motion of the reference-row cameras
@@ -873,21 +878,28 @@ class WindowOdometry:
         ``stall_intervals`` of the stream's cadence (the median interval of the last frames)
         and at most ``stall_max_s``: a stalled camera or node, whose tracks across it may have
         locked onto a repeated pattern; else None."""
-        if self.options.stall_intervals <= 0 or len(self._seen) < 2:
+        cadence = self._cadence_ns()
+        if self.options.stall_intervals <= 0 or cadence is None:
             return None
-        cadence = float(np.median(np.diff(np.asarray(self._seen, np.int64))))
         gap = stamp_ns - self._seen[-1]
         if not (cadence > 0 and self.options.stall_intervals * cadence < gap
                 <= self.options.stall_max_s * 1e9):
             return None
         return gap * 1e-9
 
+    def _cadence_ns(self) -> float | None:
+        """The stream's frame interval (ns): the median interval of the last frames seen,
+        None before two."""
+        if len(self._seen) < 2:
+            return None
+        return float(np.median(np.diff(np.asarray(self._seen, np.int64))))
+
     def _aliased(self, predicted: FrameState, state: FrameState, inliers: int) -> bool:
         """Whether a pose tracked across a stall is a repeated pattern's: more than
         ``reloc_max_rotation_deg`` off the constant-velocity prediction and supported by
         fewer than ``stall_min_inlier_share`` of the usual inliers."""
         o = self.options
-        turn = np.degrees(np.linalg.norm(so3_log(predicted.R.T @ state.R)))
+        turn = _turn_deg(predicted.R, state.R)
         usual = float(np.median(self._inliers)) if self._inliers else 0.0
         return bool(turn > o.reloc_max_rotation_deg and inliers < o.stall_min_inlier_share * usual)
 
@@ -906,8 +918,8 @@ class WindowOdometry:
         if scale is None:
             return None
         state, _, vel_cur = self._states_from_pair(res, kf.state, stamp_ns, scale)
-        if predicted is not None and not np.degrees(np.linalg.norm(so3_log(
-                predicted.R.T @ state.R))) <= self.options.reloc_max_rotation_deg:
+        if predicted is not None and \
+                not _turn_deg(predicted.R, state.R) <= self.options.reloc_max_rotation_deg:
             return None
         new_kf = self._new_keyframe(state, obs, vel_cur)
         before = state.copy()
@@ -1086,15 +1098,16 @@ class WindowOdometry:
                              o.reloc_min_inliers, self.seed + self._next_kf)  # fmt: skip
         if found is None:
             return None
-        turn = np.degrees(np.linalg.norm(so3_log(predicted.R.T @ found.R)))
+        turn = _turn_deg(predicted.R, found.R)
         if not turn <= o.reloc_max_rotation_deg:
             return None
         usual = self._usual_speed()
-        if self._stalled_map and usual and len(self._seen) >= 2:
+        cadence_ns = self._cadence_ns()
+        if self._stalled_map and usual and cadence_ns is not None:
             # a map started after a stall: the lost map's memory can alias as the tracks did
             # (a car re-found 19 steps back, where the stall began), so within the usual steps
             # of the prediction too
-            cadence = float(np.median(np.diff(np.asarray(self._seen, np.int64)))) * 1e-9
+            cadence = cadence_ns * 1e-9
             if np.linalg.norm(found.p - predicted.p) > o.reloc_max_jump_steps * usual * cadence:
                 return None
         if not self._provisional(stamp_ns) and usual and self._last is not None:
